@@ -1,0 +1,1 @@
+"""scenesig: mapping."""

@@ -1,0 +1,1 @@
+"""The simulated survey world (the embedded default data)."""

@@ -1,0 +1,40 @@
+"""Shared fixtures: the real data location, and small synthetic survey runs."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = ROOT.parent / "shared" / "data"
+
+
+@pytest.fixture
+def grief_root():
+    """``../shared/data/grief``; skips with a message where the real data is absent."""
+    path = SHARED_DATA / "grief"
+    if not path.is_dir():
+        pytest.skip(f"real data not found at {path} (tests on GRIEF need ../shared/data beside the project)")
+    return path
+
+
+def make_run(n_frames=5, with_truth=True, size=(64, 48), seed=0):
+    """A small synthetic SurveyRun (in memory) and its images."""
+    from surveys.geometry import Camera, make_pose, rot_z, CAMERA_FROM_VEHICLE_AXES
+    from surveys.run import SurveyRun
+
+    rng = np.random.default_rng(seed)
+    w, h = size
+    cam = Camera(50.0, 50.0, w / 2 - 0.5, h / 2 - 0.5, w, h)
+    t = np.arange(n_frames) * 0.05
+    poses = np.stack([make_pose(rot_z(0.01 * k), [0.5 * k, 0.1 * np.sin(k), 0.0]) for k in range(n_frames)])
+    run = SurveyRun(
+        name="synthetic", conditions=["sunny"], camera=cam,
+        T_vehicle_camera=make_pose(CAMERA_FROM_VEHICLE_AXES, [0, 0, 1.5]),
+        rates={"camera_hz": 20.0, "odometry_hz": 20.0, "ins_hz": 20.0},
+        frame_times=t, frame_files=[f"images/{i:06d}.png" for i in range(n_frames)],
+        odometry_times=t, odometry_poses=poses, groundtruth_times=t, groundtruth_poses=poses,
+        truth_times=t if with_truth else None, truth_poses=poses if with_truth else None,
+        gps=np.column_stack([t, poses[:, :3, 3]]), metadata={"seed": seed},
+    )
+    images = [rng.integers(0, 255, (h, w, 3), dtype=np.uint8) for _ in range(n_frames)]
+    return run, images
