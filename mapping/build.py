@@ -127,12 +127,14 @@ def build_place(place: places_mod.Place, views: list, negatives: list[np.ndarray
         uv = np.full((n, len(window), 2), np.nan)
         scale = np.zeros((n, len(window)))
         prob = np.zeros((n, len(window)))
+        area = np.zeros((n, len(window)))
         for f, j in enumerate(window):
             img = images[0] if j == ref.frame else ref.run.image(int(j), gray=True)
             d = bank.detect(img, top_n=1)
             uv[:, f, 0], uv[:, f, 1] = d.x[:, 0], d.y[:, 0]
             scale[:, f], prob[:, f] = d.scale[:, 0], d.prob[:, 0]
-        area = np.array([c.width * c.height for c in bank.classifiers], dtype=float)
+            # patch area a of eq. 5: the firing's box in image pixels (0 = no firing: not used)
+            area[:, f] = np.nan_to_num(d.width[:, 0] * d.height[:, 0], nan=0.0)
         dets = Detections(uv, scale, prob, area)
         # T_{j,p}: the place frame (the reference frame's vehicle pose) seen from window frame j
         res = refine_landmarks(dets, invert(T_frame_window), camera, T_vc, reference=reference,
@@ -150,7 +152,7 @@ def build_place(place: places_mod.Place, views: list, negatives: list[np.ndarray
 
     rel_err = []
     if len(keep):
-        sizes = np.array([[c.width, c.height] for c in kept_bank.classifiers], dtype=float)
+        sizes = np.array([[c.box[2], c.box[3]] for c in kept_bank.classifiers], dtype=float)
         box_xyxy = np.concatenate([boxes - sizes / 2, boxes + sizes / 2], axis=1)
         truth = _true_depths(ref.run, ref.frame, box_xyxy)
         if truth is not None:
@@ -247,7 +249,16 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     if places_subset is not None and any(not writer.has_place(p.index) for p in places):
         return {"partial": True, "built": sorted(stats)}
 
-    writer.finalise([p.to_dict() for p in places])
+    metas = [p.to_dict() for p in places]
+    if reference.truth_times is not None:
+        # Simulated reference run: record where each place truly is, so the evaluation can tell the
+        # localiser's error relative to the map from the map's own (reference INS) georeferencing error.
+        from surveys.geometry import interpolate_poses
+        truth = interpolate_poses(reference.truth_times, reference.truth_poses,
+                                  reference.frame_times[[p.reference_frame for p in places]]).reshape(-1, 4, 4)
+        for m, T in zip(metas, truth):
+            m["extra"] = {"T_truth_place": T.tolist()}
+    writer.finalise(metas)
     return _write_summary(out, places, stats, time.perf_counter() - t0)
 
 

@@ -5,8 +5,9 @@ Layout of ``maps/NAME/``::
     manifest.json            format version, camera, T_vehicle_camera, build parameters, software version,
                              places (pose T_world_place, neighbours, file, sha256, size) -- written last
     places/place_0007.npz    one place: the signature bank's arrays (opaque), landmarks (N,3) in the place
-                             frame, covariances (N,3,3), classifier ids (N,), a small keyframe (JPEG bytes)
-                             and per-place metadata
+                             frame, covariances (N,3,3), classifier ids (N,), a small keyframe (JPEG bytes),
+                             per-place metadata and, optionally, the point-feature map (``points/``: ORB/SIFT
+                             keypoints, descriptors and 3D points of the reference keyframe)
     journal.jsonl            only while a build runs: header + one line per place written (for resume)
 
 Guarantees:
@@ -59,6 +60,7 @@ JOURNAL = "journal.jsonl"
 PLACES_DIR = "places"
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # the earliest date zip can store; fixed so bytes repeat
 _BANK_PREFIX = "bank/"
+_POINTS_PREFIX = "points/"
 
 #: Relative rounding error (per row, L2) tolerated when storing landmarks and covariances.
 GEOMETRY_TOL = 1e-6
@@ -133,6 +135,11 @@ class PlaceData:
         Encoded image (JPEG/PNG bytes); an image array is encoded with :func:`encode_keyframe` on write.
     meta : dict, optional
         JSON-serialisable per-place metadata (e.g. reference run, frame, rejection counts).
+    points : dict of str -> ndarray, optional
+        Point-feature map of the place for the ORB / SIFT baselines
+        (:func:`mapping.pointmap.build_point_features`: keyframe keypoints, descriptors, 3D points).
+        Stored under ``points/`` exactly in the dtypes given (the builder already picks compact,
+        lossless ones); a place without point features stores nothing extra, so its bytes do not change.
     """
 
     bank_arrays: dict
@@ -141,6 +148,7 @@ class PlaceData:
     classifier_ids: np.ndarray
     keyframe: bytes | np.ndarray | None = None
     meta: dict = field(default_factory=dict)
+    points: dict = field(default_factory=dict)
 
     def __post_init__(self):
         lm = np.asarray(self.landmarks)
@@ -169,6 +177,15 @@ class PlaceData:
                                  f"arrays are stored (no pickled objects)")
         if not isinstance(self.meta, dict):
             raise TypeError("meta must be a dict")
+        if self.points is None:
+            self.points = {}
+        if not isinstance(self.points, dict):
+            raise TypeError("points must be a dict of str -> numpy array (mapping.pointmap.build_point_features)")
+        for k, v in self.points.items():
+            if not isinstance(k, str) or not k or "/" in k:
+                raise ValueError(f"point array names must be non-empty strings without '/', got {k!r}")
+            if np.asarray(v).dtype.kind not in "biuf":
+                raise ValueError(f"point array {k!r} has dtype {np.asarray(v).dtype}; only numeric arrays are stored")
 
     @property
     def n_signatures(self) -> int:
@@ -268,6 +285,8 @@ def encode_place(index: int, data: PlaceData, float16_tol: float = 1e-3,
     if isinstance(kf, np.ndarray):
         kf = encode_keyframe(kf)
     entries = {_BANK_PREFIX + k: v for k, v in stored.items()}
+    # point features are stored as given: the point-map builder chose lossless compact dtypes
+    entries.update({_POINTS_PREFIX + k: np.asarray(v) for k, v in (data.points or {}).items()})
     entries.update({
         "landmarks": lm_s, "covariances": cov_s, "classifier_ids": data.classifier_ids.astype(np.int64),
         "keyframe": np.frombuffer(kf or b"", dtype=np.uint8),
@@ -310,7 +329,8 @@ def decode_place(raw: bytes, path: Path, index: int | None = None) -> PlaceData:
         return PlaceData(
             bank_arrays={k[len(_BANK_PREFIX):]: v for k, v in restore.items() if k.startswith(_BANK_PREFIX)},
             landmarks=restore["landmarks"], covariances=restore["covariances"],
-            classifier_ids=restore["classifier_ids"], keyframe=kf if fmt.get("has_keyframe") else None, meta=meta)
+            classifier_ids=restore["classifier_ids"], keyframe=kf if fmt.get("has_keyframe") else None, meta=meta,
+            points={k[len(_POINTS_PREFIX):]: v for k, v in restore.items() if k.startswith(_POINTS_PREFIX)})
     except (ValueError, TypeError) as exc:
         raise DataError(path, f"inconsistent place data: {exc}") from None
 
@@ -701,7 +721,8 @@ class MapStore:
             self._misses += 1
         meta = self.places[index]
         data = decode_place(self._read_place_bytes(meta), self.root / meta.file, index)
-        for a in (data.landmarks, data.covariances, data.classifier_ids, *data.bank_arrays.values()):
+        for a in (data.landmarks, data.covariances, data.classifier_ids, *data.bank_arrays.values(),
+                  *data.points.values()):
             a.flags.writeable = False  # cached and shared: a caller's in-place edit must not leak
         with self._lock:
             if self._cache_size:

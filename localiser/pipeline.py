@@ -1,0 +1,422 @@
+"""The online localisation pipeline (paper 003, §3.3, Fig. 6): weak localisers and the localiser block.
+
+Three blocks, as in the paper's Fig. 6:
+
+* **Detector** -- finds a method's measurements in a live image for the current place
+  (:meth:`WeakLocaliser.detect`; for scene signatures :class:`localiser.detector.Detector`);
+* **Solver** -- turns them into a localisation constraint with covariance, or none
+  (:meth:`WeakLocaliser.solve`; for scene signatures the eq. 10 solver of :mod:`localiser.solver`);
+* **Localiser** (:class:`Localiser`) -- integrates odometry at its full rate into a sliding-window
+  pose graph (:class:`localiser.posegraph.PoseGraph`), adds the localisation constraints, snaps every
+  estimate to SE(2) on the local plane of the two nearest map places (:class:`localiser.se2.PlaneSnapper`),
+  chooses the nearest place (position and heading), hands the detector and solver their motion prior,
+  and applies the failure rule: more than 20 m on dead reckoning since the last localisation -> reset
+  from the oracle (the run's INS/GPS) and count a failure.
+
+A *weak localiser* (paper §3.3.1) is any method that, given a live image, a place and a motion prior,
+returns a localisation constraint or nothing.  :class:`WeakLocaliser` is that interface, split into
+``detect`` (image -> observation, the detector thread) and ``solve`` (observation -> :class:`Measurement`,
+the solver thread) so the real-time replay can run them concurrently; ``measure`` chains them.
+Scene signatures are :class:`SignatureLocaliser`; point features (ORB / SIFT, issue 6) plug in as
+another implementation registered with :func:`register_method`, and everything else (replay,
+failure rule, outputs, metrics) is shared.
+
+Driving the blocks in time order (deterministic or real-time) is :mod:`localiser.replay`'s job.
+"""
+from __future__ import annotations
+
+import bisect
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from mapping.store import MapStore
+from surveys.geometry import Camera, invert
+
+from .detector import Detector, Observation
+from .detector import default_config as detector_default
+from .posegraph import PoseGraph
+from .se2 import PlaneSnapper
+from .solver import LocalisationConstraint, solve
+from .solver import default_config as solver_default
+
+__all__ = ["default_config", "MotionPrior", "Measurement", "WeakLocaliser", "SignatureLocaliser", "Localiser",
+           "register_method", "make_method", "available_methods", "odometry_covariance"]
+
+#: Localiser-block parameters.  Sigmas are in GTSAM's Pose3 order (rotation rad, then translation m),
+#: in the vehicle frame (x forward, y left, z up).
+default_config = {
+    # Odometry noise: a random walk, variance growing linearly with the distance of each increment
+    # (σ² · d) plus a per-sample floor (so standing still is not infinitely certain).
+    "odometry_sigma_per_sqrt_m": [0.002, 0.002, 0.004, 0.04, 0.04, 0.02],
+    "odometry_sigma_floor": [1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3],
+    # An oracle (INS/GPS) pose: the start and every reset (a GPS-aided INS is good to ~2 m).
+    "oracle_sigma": [0.01, 0.01, 0.02, 2.0, 2.0, 0.3],
+    # P_x handed to the solver is the pose graph's marginal plus this (its floor): after many
+    # localisations the marginal becomes tighter than the map itself is accurate, and the solver
+    # would then gate good localisations as "inconsistent with the prior".
+    "prior_floor_sigma": [0.003, 0.003, 0.005, 0.2, 0.2, 0.05],
+    "failure_distance_m": 20.0,      # paper §4.3
+    "lost_after_m": 10.0,            # beyond this distance blind the detector searches the whole image
+    "max_heading_diff_deg": 90.0,    # a place passed the other way round is not "nearest"
+    "posegraph": {},                 # overrides of localiser.posegraph.default_config
+}
+
+
+def _merge(config: dict | None, defaults: dict, what: str) -> dict:
+    cfg = dict(defaults)
+    if config:
+        unknown = set(config) - set(defaults)
+        if unknown:
+            raise ValueError(f"unknown {what} option(s) {sorted(unknown)}; known: {sorted(defaults)}")
+        cfg.update(config)
+    return cfg
+
+
+def odometry_covariance(T_increment: np.ndarray, sigma_per_sqrt_m, sigma_floor) -> np.ndarray:
+    """6x6 covariance of one odometry increment: ``diag(σ_d² · d + σ_0²)``, ``d`` its length (m)."""
+    d = float(np.linalg.norm(np.asarray(T_increment)[:3, 3]))
+    return np.diag(np.asarray(sigma_per_sqrt_m, float) ** 2 * d + np.asarray(sigma_floor, float) ** 2)
+
+
+# ------------------------------------------------------------------------------------------------
+# data passed between the blocks
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class MotionPrior:
+    """What the localiser tells the detector and solver for one frame.
+
+    Attributes
+    ----------
+    t : time of the frame.
+    T_world_vehicle : (4,4) snapped estimate at ``t`` (the motion prior T̂).
+    covariance : (6,6) its covariance P_x (GTSAM Pose3 convention, vehicle frame), floored.
+    place : the nearest place (index); ``T_world_place`` its pose.
+    next_place : the place ahead (to prefetch), or None.
+    lost : True when the estimate is not good enough to search around predicted projections.
+    distance_since_localisation : odometry distance since the last localisation or reset (m).
+    """
+
+    t: float
+    T_world_vehicle: np.ndarray
+    covariance: np.ndarray
+    place: int
+    T_world_place: np.ndarray
+    next_place: int | None
+    lost: bool
+    distance_since_localisation: float
+
+    @property
+    def T_place_vehicle(self) -> np.ndarray:
+        """The prior in the place frame (what the solver and the detector windows use)."""
+        return invert(self.T_world_place) @ self.T_world_vehicle
+
+
+@dataclass
+class Measurement:
+    """A weak localiser's answer for one frame: a constraint or none, with counts and timings."""
+
+    constraint: LocalisationConstraint | None
+    detections: int = 0
+    inliers: int = 0
+    reason: str | None = None
+    ms_detect: float = 0.0
+    ms_solve: float = 0.0
+    solved: bool = False          # the solver ran (enough detections to try)
+    extra: dict = field(default_factory=dict)
+
+    @classmethod
+    def coerce(cls, result) -> "Measurement":
+        """A Measurement from what a method returned: a Measurement, a bare constraint, or None."""
+        if isinstance(result, Measurement):
+            return result
+        if result is None:
+            return cls(None, reason="no_measurement")
+        if isinstance(result, LocalisationConstraint):
+            return cls(result, reason=None, solved=True)
+        raise TypeError(f"a weak localiser must return a Measurement, a LocalisationConstraint or None, "
+                        f"got {type(result).__name__}")
+
+
+# ------------------------------------------------------------------------------------------------
+# the method interface
+# ------------------------------------------------------------------------------------------------
+class WeakLocaliser:
+    """Interface of a weak localiser (paper §3.3.1): image + place + motion prior -> constraint or none.
+
+    Implement either :meth:`measure` alone (a single-stage method: then :meth:`detect` does all the
+    work and :meth:`solve` passes its answer on), or :meth:`detect` and :meth:`solve` (two stages,
+    which the real-time replay runs in the detector and solver threads).
+
+    Attributes
+    ----------
+    name : method name (``metrics.json``'s ``method``).
+    color : True if the method wants BGR images, False for gray.
+    """
+
+    name = "weak"
+    color = False
+
+    def prefetch(self, place: int | None) -> None:
+        """Prepare a place that is coming up (e.g. decode its bank in the background)."""
+
+    def detect(self, image: np.ndarray, place: int, prior: MotionPrior):
+        """Detector stage: image -> observation (anything :meth:`solve` understands)."""
+        if type(self).measure is WeakLocaliser.measure:
+            raise NotImplementedError(f"{type(self).__name__} must implement measure() or detect() and solve()")
+        return self.measure(image, place, prior)
+
+    def solve(self, observation, place: int, prior: MotionPrior) -> Measurement | LocalisationConstraint | None:
+        """Solver stage: observation -> :class:`Measurement` (a single-stage method's detect already answered)."""
+        return observation
+
+    def measure(self, image: np.ndarray, place: int, prior: MotionPrior) -> Measurement | LocalisationConstraint | None:
+        """Both stages: a localisation constraint (in a :class:`Measurement`), or None."""
+        if type(self).detect is WeakLocaliser.detect:
+            raise NotImplementedError(f"{type(self).__name__} must implement measure() or detect() and solve()")
+        return self.solve(self.detect(image, place, prior), place, prior)
+
+    def close(self) -> None:
+        """Release threads and caches."""
+
+
+class SignatureLocaliser(WeakLocaliser):
+    """Scene signatures: the place's bank fired in the image (detector), eq. 10 (solver).
+
+    Parameters
+    ----------
+    store : the map.
+    camera, T_vehicle_camera : the live camera.
+    config : ``{"detector": {...}, "solver": {...}}`` overrides of
+        :data:`localiser.detector.default_config` and :data:`localiser.solver.default_config`.
+    """
+
+    name = "signatures"
+
+    def __init__(self, store: MapStore, camera: Camera, T_vehicle_camera: np.ndarray, config: dict | None = None):
+        cfg = _merge(config, {"detector": {}, "solver": {}}, "signature method")
+        self.store = store
+        self.camera = camera
+        self.T_vehicle_camera = np.asarray(T_vehicle_camera, dtype=float)
+        self.solver_config = _merge(cfg["solver"], solver_default, "solver")
+        self.detector = Detector(store, camera, T_vehicle_camera, cfg["detector"])
+        self.color = False
+        # The banks' HOG parameters decide gray or colour input (all places share them).
+        for idx in store.places:
+            lp = self.detector.place(idx)
+            if len(lp.bank):
+                self.color = bool(lp.bank.hog.get("color", False))
+                break
+
+    def prefetch(self, place):
+        self.detector.prefetch(place)
+
+    def detect(self, image, place, prior: MotionPrior) -> Observation:
+        return self.detector.detect(image, place, prior.T_place_vehicle, prior.covariance, whole_image=prior.lost)
+
+    def solve(self, obs: Observation, place, prior: MotionPrior) -> Measurement:
+        n = len(obs)
+        if n < self.solver_config["min_inliers"]:
+            return Measurement(None, n, 0, "too_few_detections", obs.ms, 0.0, False,
+                               {"whole_image": obs.whole_image, "searched": obs.searched})
+        res = solve(obs.uv, obs.R, obs.landmarks, prior.T_place_vehicle, prior.covariance, self.camera,
+                    self.T_vehicle_camera, landmark_cov=obs.landmark_cov, config=self.solver_config)
+        c = res.constraint(self.store.places[place].T_world_place)
+        return Measurement(c, n, res.n_inliers, res.reason, obs.ms, res.ms, True,
+                           {"whole_image": obs.whole_image, "searched": obs.searched})
+
+    def close(self):
+        self.detector.close()
+
+
+_METHODS: dict[str, Callable] = {"signatures": SignatureLocaliser}
+# Methods provided by other modules, imported on first use (they call register_method).
+_LAZY = {"orb": "localiser.pointmethod", "sift": "localiser.pointmethod"}
+
+
+def register_method(name: str, factory: Callable) -> None:
+    """Make ``factory(store, camera, T_vehicle_camera, config) -> WeakLocaliser`` available as ``name``."""
+    _METHODS[name] = factory
+
+
+def available_methods() -> list[str]:
+    return sorted(set(_METHODS) | set(_LAZY))
+
+
+def make_method(name: str, store: MapStore, camera: Camera, T_vehicle_camera, config: dict | None = None) -> WeakLocaliser:
+    """Instantiate a registered method (``signatures``, ``orb``, ``sift``, ...)."""
+    if name not in _METHODS and name in _LAZY:
+        import importlib
+
+        try:
+            importlib.import_module(_LAZY[name])
+        except ImportError as exc:
+            raise ValueError(f"method {name!r} needs module {_LAZY[name]}, which could not be imported: {exc}") from None
+    if name not in _METHODS:
+        raise ValueError(f"unknown method {name!r}; available: {available_methods()}")
+    return _METHODS[name](store, camera, T_vehicle_camera, config)
+
+
+# ------------------------------------------------------------------------------------------------
+# the localiser block
+# ------------------------------------------------------------------------------------------------
+class Localiser:
+    """Odometry integration, pose graph, SE(2) snapping, place choice and the failure rule.
+
+    Thread-safe: the real-time replay feeds odometry from one thread and measurements from another.
+
+    Parameters
+    ----------
+    store : the map (places and their poses: the keyframes of the SE(2) snapping).
+    oracle : ``oracle(t) -> T_world_vehicle``, the run's INS/GPS pose at time t, used to start and to
+        reset after a failure (never to localise).
+    config : overrides of :data:`default_config`.
+    """
+
+    def __init__(self, store: MapStore, oracle: Callable[[float], np.ndarray], config: dict | None = None):
+        cfg = _merge(config, default_config, "localiser")
+        self.config = cfg
+        self.store = store
+        if len(store) < 2:
+            raise ValueError(f"map {store.root} has {len(store)} place(s); the localiser needs at least 2")
+        self._place_ids = np.array(sorted(store.places), dtype=int)
+        self.snapper = PlaneSnapper(np.stack([store.places[i].T_world_place for i in self._place_ids]))
+        self.oracle = oracle
+        self.graph = PoseGraph(config={**cfg["posegraph"], "failure_distance_m": cfg["failure_distance_m"]})
+        self._oracle_cov = np.diag(np.asarray(cfg["oracle_sigma"], float) ** 2)
+        self._floor = np.diag(np.asarray(cfg["prior_floor_sigma"], float) ** 2)
+        self._max_dyaw = np.radians(cfg["max_heading_diff_deg"])
+        self._lock = threading.RLock()
+        self.failures = 0
+        self.reset_times: list[float] = []
+        self.localisation_times: list[float] = []
+        # Odometry distance: cumulative total and its history (for localisations that arrive late).
+        self._cum = 0.0
+        self._cum_t: list[float] = []
+        self._cum_d: list[float] = []
+        self._fix = 0.0                   # cumulative distance at the last localisation or reset
+        self.odometry_seconds = 0.0
+        self.n_odometry = 0
+
+    # --------------------------------------------------------------------------- state
+    @property
+    def started(self) -> bool:
+        return self.graph.initialised
+
+    def start(self, t: float) -> None:
+        """Initialise from the oracle at time t (not a failure)."""
+        with self._lock:
+            self._reset(t)
+
+    def _reset(self, t: float) -> None:
+        T = np.asarray(self.oracle(t), dtype=float)
+        self.graph.reset(t, T, self._oracle_cov)
+        self._fix = self._cum
+        self._cum_t, self._cum_d = [float(t)], [self._cum]
+
+    @property
+    def distance_since_localisation(self) -> float:
+        """Odometry distance (m) since the last localisation or reset."""
+        return self._cum - self._fix
+
+    def _distance_at(self, t: float) -> float:
+        """Cumulative odometry distance at time t (interpolated; clamped to the history)."""
+        i = bisect.bisect_left(self._cum_t, t)
+        if i >= len(self._cum_t):
+            return self._cum
+        if i == 0:
+            return self._cum_d[0]
+        t0, t1 = self._cum_t[i - 1], self._cum_t[i]
+        d0, d1 = self._cum_d[i - 1], self._cum_d[i]
+        return d0 + (d1 - d0) * (t - t0) / (t1 - t0) if t1 > t0 else d1
+
+    # ------------------------------------------------------------------------ odometry
+    def add_odometry(self, t: float, T_increment: np.ndarray) -> None:
+        """One odometry increment (vehicle at the previous sample -> vehicle at t), at the full rate."""
+        cfg = self.config
+        cov = odometry_covariance(T_increment, cfg["odometry_sigma_per_sqrt_m"], cfg["odometry_sigma_floor"])
+        t0 = time.perf_counter()
+        with self._lock:
+            self.graph.add_odometry(t, T_increment, cov)
+            self._cum += float(np.linalg.norm(np.asarray(T_increment)[:3, 3]))
+            self._cum_t.append(float(t))
+            self._cum_d.append(self._cum)
+            if len(self._cum_t) > 4096:      # the window is seconds long; keep a bounded history
+                del self._cum_t[:2048]
+                del self._cum_d[:2048]
+        self.odometry_seconds += time.perf_counter() - t0
+        self.n_odometry += 1
+
+    def check_failure(self, t: float) -> bool:
+        """The failure rule: blind for more than ``failure_distance_m`` -> reset from the oracle at t."""
+        with self._lock:
+            if self.distance_since_localisation <= self.config["failure_distance_m"] + 1e-9:
+                return False
+            self._reset(t)
+            self.failures += 1
+            self.reset_times.append(float(t))
+            return True
+
+    # ------------------------------------------------------------------------- outputs
+    def estimate(self, t: float | None = None) -> np.ndarray:
+        """Snapped ``T_world_vehicle`` at time t (default: the latest)."""
+        with self._lock:
+            return self.snapper.snap(self._graph_estimate(t))
+
+    def _graph_estimate(self, t: float | None) -> np.ndarray:
+        # A time before the window (a frame from before a reset, in real-time mode) gets the
+        # window's first pose: the graph cannot go back and the oracle must not be consulted.
+        try:
+            return self.graph.estimate(t)
+        except ValueError:
+            if t is None:
+                raise
+            return self.graph.estimate(float(self.graph.keyframes()[0][0]))
+
+    def nearest_place(self, T_world_vehicle: np.ndarray) -> int:
+        return self.store.nearest_place(T_world_vehicle, max_heading_diff=self._max_dyaw)
+
+    def place_ahead(self, place: int, T_world_vehicle: np.ndarray) -> int | None:
+        """The neighbour of ``place`` that lies ahead of the vehicle (the next place to prefetch)."""
+        meta = self.store.places[place]
+        fwd = np.asarray(T_world_vehicle)[:3, 0]
+        best, best_d = None, np.inf
+        for n in meta.neighbours:
+            d = self.store.places[n].position - meta.position
+            along = float(d @ fwd)
+            if along > 0 and along < best_d:
+                best, best_d = n, along
+        return best
+
+    def prior(self, t: float) -> MotionPrior:
+        """The motion prior for a frame at time t: snapped estimate, floored covariance, place."""
+        with self._lock:
+            T = self.snapper.snap(self._graph_estimate(t))
+            P = self.graph.covariance() + self._floor
+            blind = self.distance_since_localisation
+        P = 0.5 * (P + P.T)
+        place = self.nearest_place(T)
+        return MotionPrior(float(t), T, P, place, self.store.places[place].T_world_place, self.place_ahead(place, T),
+                           blind > self.config["lost_after_m"], blind)
+
+    def add_measurement(self, t: float, measurement: Measurement | LocalisationConstraint | None) -> bool:
+        """Add a weak localiser's answer for the frame at t; True if a localisation was accepted."""
+        m = Measurement.coerce(measurement)
+        c = m.constraint
+        if c is None:
+            return False
+        with self._lock:
+            ok = self.graph.add_localisation(t, c.T_world_vehicle_detections, information=c.information_detections)
+            if ok:
+                d = self._distance_at(t)
+                # A late localisation (real-time mode) counts from its own time, never backwards.
+                self._fix = max(self._fix, d)
+                self.localisation_times.append(float(t))
+            return ok
+
+    @property
+    def ms_per_odometry_update(self) -> float:
+        return 1e3 * self.odometry_seconds / max(self.n_odometry, 1)

@@ -1,0 +1,283 @@
+"""``scenesig report RESULTS... --out DIR``: one self-contained HTML page of localisation results.
+
+RESULTS are ``scenesig localise`` output folders, or folders containing them (a ``scenesig demo``
+folder).  The page (``DIR/index.html``) has
+
+* a summary table -- per run and method: lateral and heading median, localised fraction, failures,
+  failures per km, share of distance more than 20 m blind;
+* failures per km of each point-feature method relative to scene signatures, per run (the paper's
+  finding, in one number per run);
+* the localisation figures of §4.3-4.4 (:func:`localiser.experiments.localisation_figures`): per run,
+  lateral / heading errors against truth for every method and the raw INS, speed, matches per frame with
+  the localised frames marked; the dead-reckoning plot (Fig. 25);
+* the matching experiment's figures (Figs 11-14) when a ``matching.json`` is found below RESULTS
+  (written by :func:`localiser.experiments.write_matching`).
+
+Figures are PNG files in ``DIR/figures`` referenced by relative links; the page has no script, no
+external style sheet and no web font, so it opens anywhere, offline.
+
+Survey runs (for the raw INS errors and the true speed) are found below RESULTS by name, or given with
+``--runs``.
+"""
+from __future__ import annotations
+
+import html
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from surveys.errors import DataError
+
+from .experiments import (find_localise_outputs, find_runs, localisation_figures, read_localise_output,
+                          summary_rows)
+
+__all__ = ["build_report", "run_from_args", "find_matching"]
+
+_CSS = """
+body { font-family: -apple-system, "Segoe UI", Helvetica, Arial, sans-serif; margin: 1.5em auto; max-width: 1200px;
+       color: #222; padding: 0 1em; }
+h1 { font-size: 1.5em; margin-bottom: 0.2em; } h2 { font-size: 1.2em; margin-top: 1.8em; border-bottom: 1px solid #ccc; }
+p.meta { color: #666; font-size: 0.9em; margin-top: 0; }
+table { border-collapse: collapse; font-size: 0.88em; margin: 0.6em 0; }
+th, td { border: 1px solid #ccc; padding: 3px 8px; text-align: right; }
+th { background: #f0f0f0; } td.l, th.l { text-align: left; }
+tr.sig td { background: #fff5f5; }
+td.bad { color: #b00; font-weight: 600; } td.good { color: #070; }
+figure { margin: 1em 0 1.6em 0; } figure img { max-width: 100%; border: 1px solid #ddd; }
+figcaption { font-size: 0.88em; color: #444; margin-top: 0.3em; }
+.note { font-size: 0.85em; color: #555; }
+"""
+
+
+def _fmt(v, digits=2, pct=False):
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "&ndash;"
+    if pct:
+        return f"{100 * float(v):.1f} %"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    return f"{float(v):.{digits}f}"
+
+
+def find_matching(paths) -> list[Path]:
+    """Folders with a ``matching.json`` (matching-experiment outputs) at or below ``paths``."""
+    found = []
+    for p in paths:
+        p = Path(p)
+        if (p / "matching.json").is_file():
+            found.append(p)
+        elif p.is_dir():
+            found.extend(sorted(m.parent for m in p.rglob("matching.json")))
+    return list(dict.fromkeys(found))
+
+
+def _rel(target: Path, start: Path) -> str:
+    try:
+        return Path(os.path.relpath(Path(target).resolve(), Path(start).resolve())).as_posix()
+    except ValueError:        # another drive (Windows): an absolute link is the best we can do
+        return Path(target).resolve().as_uri()
+
+
+def _summary_table(rows: list[dict], out: Path) -> str:
+    head = ("<tr><th class='l'>run</th><th class='l'>conditions</th><th class='l'>method</th>"
+            "<th>lateral median (m)</th><th>heading median (&deg;)</th><th>localised fraction</th>"
+            "<th>failures</th><th>failures / km</th><th>blind &gt; 20 m</th><th>distance (m)</th></tr>")
+    body = []
+    for r in rows:
+        cls = " class='sig'" if r["method"] == "signatures" else ""
+        blind = r["blind_fraction_over_20m"]
+        bcls = "bad" if blind is not None and blind > 0.01 else "good" if blind is not None else ""
+        body.append(
+            f"<tr{cls}><td class='l'><a href='{html.escape(_rel(Path(r['folder']), out))}/'>{html.escape(r['run'])}</a></td>"
+            f"<td class='l'>{html.escape(', '.join(r['conditions']))}</td><td class='l'>{html.escape(r['method'])}</td>"
+            f"<td>{_fmt(r['lateral_median_m'])}</td><td>{_fmt(r['heading_median_deg'])}</td>"
+            f"<td>{_fmt(r['localised_fraction'], pct=True)}</td><td>{_fmt(r['failures'])}</td>"
+            f"<td>{_fmt(r['failures_per_km'], 1)}</td><td class='{bcls}'>{_fmt(blind, pct=True)}</td>"
+            f"<td>{_fmt(r['distance_m'], 0)}</td></tr>")
+    return f"<table id='summary'>{head}{''.join(body)}</table>"
+
+
+def _ratio_table(rows: list[dict]) -> str:
+    """Failures per km of each other method relative to signatures, per run."""
+    by_run: dict = {}
+    for r in rows:
+        by_run.setdefault(r["run"], {})[r["method"]] = r
+    others = sorted({r["method"] for r in rows} - {"signatures"})
+    if "signatures" not in {r["method"] for r in rows} or not others:
+        return ""
+    head = "<tr><th class='l'>run</th><th class='l'>conditions</th><th>signatures failures / km</th>" + "".join(
+        f"<th>{html.escape(m)} failures / km</th><th>{html.escape(m)} / signatures</th>" for m in others) + "</tr>"
+    body = []
+    tot: dict = {m: [0.0, 0.0] for m in ["signatures"] + others}     # failures, km
+    for run, ms in sorted(by_run.items()):
+        sig = ms.get("signatures")
+        if sig is None:
+            continue
+        cells = [f"<td class='l'>{html.escape(run)}</td><td class='l'>{html.escape(', '.join(sig['conditions']))}</td>",
+                 f"<td>{_fmt(sig['failures_per_km'], 1)}</td>"]
+        for m in ["signatures"] + others:
+            r = ms.get(m)
+            if r is not None and r["failures"] is not None and r["distance_m"]:
+                tot[m][0] += r["failures"]
+                tot[m][1] += r["distance_m"] / 1000.0
+        for m in others:
+            r = ms.get(m)
+            fk = r["failures_per_km"] if r else None
+            sk = sig["failures_per_km"]
+            ratio = "&ndash;" if fk is None or sk is None else ("&infin;" if sk == 0 and fk > 0 else
+                                                                 "1.0" if sk == 0 else f"{fk / sk:.1f}")
+            cells.append(f"<td>{_fmt(fk, 1)}</td><td>{ratio}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    rate = {m: (f / km if km > 0 else None) for m, (f, km) in tot.items()}
+    cells = ["<td class='l'><b>all runs</b></td><td></td>", f"<td><b>{_fmt(rate['signatures'], 1)}</b></td>"]
+    for m in others:
+        fk, sk = rate[m], rate["signatures"]
+        ratio = "&ndash;" if fk is None or sk is None else ("&infin;" if sk == 0 and fk > 0 else
+                                                             "1.0" if sk == 0 else f"{fk / sk:.1f}")
+        cells.append(f"<td><b>{_fmt(fk, 1)}</b></td><td><b>{ratio}</b></td>")
+    body.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table id='failures'>{head}{''.join(body)}</table>"
+
+
+def _figure(src: str, caption: str, alt: str) -> str:
+    return (f"<figure><img src='{html.escape(src)}' alt='{html.escape(alt)}'>"
+            f"<figcaption>{caption}</figcaption></figure>")
+
+
+def build_report(results, out, runs=None, title: str = "scenesig localisation report") -> Path:
+    """Write ``out/index.html`` and ``out/figures/*.png`` from localise outputs (and matching outputs).
+
+    Parameters
+    ----------
+    results : paths of localise output folders, or folders containing them.
+    out : report folder (created; its ``figures/`` is rewritten).
+    runs : optional survey-run folders (raw INS errors, true speed); runs below ``results`` are
+        found by name anyway.
+
+    Returns
+    -------
+    Path of ``index.html``.
+    """
+    t0 = time.perf_counter()
+    results = [Path(r) for r in results]
+    out = Path(out)
+    folders = find_localise_outputs(results)
+    if not folders:
+        raise DataError(results[0], "no localise outputs (metrics.json) found here")
+    outputs = [read_localise_output(f) for f in folders]
+    names = {o.run for o in outputs}
+    found = find_runs(results, names)
+    if runs:
+        found.update(find_runs(runs, names))
+    fig_dir = out / "figures"
+    if fig_dir.exists():
+        shutil.rmtree(fig_dir)
+    fig_dir.mkdir(parents=True)
+    figs = localisation_figures(outputs, fig_dir, found)
+    rows = summary_rows(outputs)
+
+    parts = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+             f"<meta name='viewport' content='width=device-width, initial-scale=1'><style>{_CSS}</style></head><body>",
+             f"<h1>{html.escape(title)}</h1>",
+             f"<p class='meta'>{len(outputs)} localise outputs, {len(names)} runs, methods: "
+             f"{html.escape(', '.join(sorted({o.method for o in outputs})))}; generated "
+             f"{time.strftime('%Y-%m-%d %H:%M:%S')}.</p>",
+             "<h2>Summary</h2>",
+             "<p class='note'>Errors against the run's exact truth, lateral across the reference path; localised "
+             "fraction: share of distance within 10 m of a localisation; a failure is more than 20 m on dead "
+             "reckoning (then reset from the INS/GPS); <i>blind &gt; 20 m</i>: share of distance travelled more "
+             "than 20 m past the last localisation (target &le; 1 %).</p>",
+             _summary_table(rows, out)]
+    ratio = _ratio_table(rows)
+    if ratio:
+        parts += ["<h2>Failures per km relative to scene signatures</h2>", ratio]
+    parts.append("<h2>Distance travelled on dead reckoning (Fig. 25)</h2>")
+    parts.append(_figure(_rel(figs["dead_reckoning"], out),
+                         "For each distance d, the probability of travelling more than d blind (distance-weighted, "
+                         "over all runs of each method); lower left is better.", "dead reckoning"))
+    parts.append("<h2>Localisation per run (Figs 15&ndash;24)</h2>")
+    for name, p in sorted(figs["runs"].items()):
+        conds = next((o.metrics.get("conditions") for o in outputs if o.run == name), None) or []
+        ins = "and the raw INS/GPS (dashed) " if name in found else ""
+        parts.append(_figure(_rel(p, out),
+                             f"<b>{html.escape(name)}</b> ({html.escape(', '.join(conds))}): lateral and heading errors "
+                             f"against truth of every method {ins}over distance, speed, matches per frame, and the "
+                             f"frames each method localised on.", f"run {name}"))
+    matching = find_matching(results)
+    for k, mdir in enumerate(matching):
+        mfig = fig_dir / (f"matching_{k}" if len(matching) > 1 else "matching")
+        mfig.mkdir(parents=True, exist_ok=True)
+        pngs = sorted(mdir.glob("*.png"))
+        for png in pngs:
+            shutil.copy2(png, mfig / png.name)
+        try:
+            summary = json.loads((mdir / "matching.json").read_text()).get("summary", {})
+        except (OSError, json.JSONDecodeError) as exc:
+            raise DataError(mdir / "matching.json", f"unreadable: {exc}") from None
+        parts.append(f"<h2>Feature matching against the map (Figs 11&ndash;14){'' if len(matching) == 1 else f' ({k + 1})'}</h2>")
+        if summary:
+            runs_ = sorted({r for m in summary.values() for r in m})
+            head = "<tr><th class='l'>run</th><th class='l'>conditions</th>" + "".join(
+                f"<th>{html.escape(m)}: mean matches / place</th><th>{html.escape(m)}: places matched</th>"
+                for m in summary) + "</tr>"
+            body = []
+            for r in runs_:
+                first = next(v[r] for v in summary.values() if r in v)
+                cells = [f"<td class='l'>{html.escape(r)}</td><td class='l'>{html.escape(', '.join(first['conditions']))}</td>"]
+                for m, v in summary.items():
+                    e = v.get(r, {})
+                    cells.append(f"<td>{_fmt(e.get('matches_mean'), 1)}</td><td>{_fmt(e.get('places_with_match'), pct=True)}</td>")
+                body.append("<tr>" + "".join(cells) + "</tr>")
+            parts.append(f"<table class='matching'>{head}{''.join(body)}</table>")
+        for png in pngs:
+            cap = ("Matches per place (a match: the same feature within 15 px in the ground-truth aligned live "
+                   "frame and the map keyframe), one line per test run." if "counts" in png.name else
+                   "Where matches fall: +1 per pixel inside each matched shape, averaged over the test runs.")
+            parts.append(_figure(_rel(mfig / png.name, out), cap, png.stem))
+    parts.append(f"<p class='meta'>Report built in {time.perf_counter() - t0:.1f} s by scenesig.</p></body></html>")
+    out.mkdir(parents=True, exist_ok=True)
+    index = out / "index.html"
+    tmp = out / "index.html.tmp"
+    tmp.write_text("\n".join(parts), encoding="utf-8")
+    tmp.replace(index)
+    (out / "report_summary.json").write_text(json.dumps({"rows": rows}, indent=1, allow_nan=False, default=_json_default) + "\n")
+    return index
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    raise TypeError(type(o).__name__)
+
+
+def run_from_args(args) -> int:
+    """``scenesig report RESULTS... --out DIR [--runs RUN...]``."""
+    index = build_report(args.results, args.out, runs=getattr(args, "runs", None) or None)
+    print(f"report: {index}")
+    return 0
+
+
+def main(argv=None) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m localiser.report", description=__doc__.splitlines()[0])
+    ap.add_argument("results", nargs="+", help="localise output folders or a demo folder containing them")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--runs", nargs="*", default=None, help="survey runs (raw INS errors, true speed)")
+    args = ap.parse_args(argv)
+    try:
+        return run_from_args(args)
+    except DataError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,368 @@
+"""HOG feature pyramid: FHOG-style 31-d cells, computed once per image and shared by a whole bank.
+
+Every classifier of a place (and the mining of all 296 candidate shapes) reads from the same
+pyramid, so the pyramid is the only per-image cost that scales with resolution; it is written for
+speed: gradients with OpenCV, orientation and spatial binning with two weighted ``np.bincount``
+passes, block normalisation vectorised over the whole cell grid.
+
+Features per 8x8-pixel cell (Felzenszwalb et al., PAMI 2010, "FHOG"):
+
+* 18 contrast-sensitive orientation bins (0..360 deg),
+* 9 contrast-insensitive bins (0..180 deg),
+* 4 texture features (gradient energy under each of the four 2x2-block normalisations),
+
+each orientation vote split linearly between its two nearest bins and spatially (bilinearly) between
+the four nearest cells, then normalised by the four 2x2 blocks the cell belongs to and clipped at
+0.2.  Cell ``(r, c)`` covers pixels ``[8r, 8r + 8) x [8c, 8c + 8)`` of its level (no border is
+dropped; blocks at the edge reuse the edge cell's energy).
+
+Pyramid levels are indexed by an integer ``k`` with scale ``2 ** (-k / scales_per_octave)``: ``k = 0``
+is the input resolution, ``k = scales_per_octave`` half of it.  A classifier stores its nominal
+``k`` and searches ``k - 1 .. k + 1``, so levels are exact and shared by all classifiers.
+
+Run ``python -m signatures.hog [IMAGE]`` to time one level and a pyramid.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+__all__ = ["default_config", "FEATURE_DIM", "fhog", "HogPyramid", "build_pyramid", "level_scale",
+           "to_gray_float"]
+
+#: HOG parameters.  Every classifier stores the values it was trained with; detection refuses a
+#: pyramid built with different ones.
+default_config = {
+    "cell": 8,                 # pixels per cell side
+    "scales_per_octave": 4,    # pyramid density: neighbouring levels differ by 2**(1/4) = 19 %
+    "clip": 0.2,               # FHOG truncation of normalised bin values
+    "color": False,            # True: per pixel, gradient of the colour channel with the largest
+                               # magnitude (FHOG); False: gradient of the gray image (2x faster)
+}
+
+#: Length of a cell's feature vector.
+FEATURE_DIM = 31
+
+_N_BINS = 18
+# cv2.resize INTER_AREA is the right anti-aliasing filter for downscaling by non-integer factors.
+_INTERP = cv2.INTER_AREA
+_EPS = 1e-4
+
+
+_MALLOC_TUNED = False
+
+
+def tune_malloc() -> bool:
+    """Keep freed memory in the process heap instead of returning it to the OS (glibc only).
+
+    A pyramid allocates a few MB of temporaries per level.  glibc serves such blocks with mmap and
+    trims the heap after each free, so every level pays ~4 ms of page faults on a 640x480 image --
+    as much as the arithmetic.  Raising the mmap and trim thresholds (64 MB / 256 MB) removes that
+    cost; the price is that up to 256 MB of freed memory stays mapped.  Called once, lazily, by
+    :func:`fhog`; set the environment variable ``SCENESIG_NO_MALLOPT=1`` to skip it.  Returns True
+    if the thresholds were set.
+    """
+    global _MALLOC_TUNED
+    if _MALLOC_TUNED:
+        return True
+    _MALLOC_TUNED = True   # try once only
+    import os
+    import sys
+    if os.environ.get("SCENESIG_NO_MALLOPT") or not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+        libc = ctypes.CDLL("libc.so.6")
+        m_trim_threshold, m_mmap_threshold = -1, -3
+        ok = libc.mallopt(m_mmap_threshold, 64 << 20) and libc.mallopt(m_trim_threshold, 256 << 20)
+        return bool(ok)
+    except (OSError, AttributeError):
+        return False
+
+
+def level_scale(k: int | np.ndarray, scales_per_octave: int) -> float | np.ndarray:
+    """Scale of pyramid level ``k`` relative to the input image."""
+    return 2.0 ** (-np.asarray(k, dtype=float) / scales_per_octave)
+
+
+def to_gray_float(image: np.ndarray, color: bool = False) -> np.ndarray:
+    """Validate an image and return float32 (gray, or BGR when ``color``) for gradient computation.
+
+    Raises
+    ------
+    ValueError
+        If the array is not a 2-D gray or 3-channel image.
+    """
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 2:
+        return image.astype(np.float32, copy=False)
+    if image.ndim != 3 or image.shape[2] not in (3, 4):
+        raise ValueError(f"expected a gray (H, W) or colour (H, W, 3) image, got shape {image.shape}")
+    if image.shape[2] == 4:
+        image = image[:, :, :3]
+    if color:
+        return image.astype(np.float32, copy=False)
+    return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_BGR2GRAY).astype(np.float32)
+
+
+# Index arrays depend only on the level size; a pyramid of a fixed camera reuses them forever.
+_INDEX_CACHE: dict[tuple[int, int, int], np.ndarray] = {}
+
+
+def _subcell_index(h: int, w: int, cell: int) -> np.ndarray:
+    """Per-pixel index of its half-cell (``cell // 2`` px square) times ``_N_BINS + 1``.
+
+    Each half-cell owns 19 histogram slots: the linear orientation vote of a pixel in bin 17 goes
+    to slots 17 and 18, and slot 18 is folded back onto bin 0 afterwards, which avoids a modulo
+    over every pixel.
+    """
+    key = (h, w, cell)
+    idx = _INDEX_CACHE.get(key)
+    if idx is None:
+        half = cell // 2
+        rows = (np.arange(h) // half).astype(np.intp)
+        cols = (np.arange(w) // half).astype(np.intp)
+        idx = ((rows[:, None] * (w // half) + cols[None, :]) * (_N_BINS + 1)).ravel()
+        if len(_INDEX_CACHE) > 64:
+            _INDEX_CACHE.clear()
+        _INDEX_CACHE[key] = idx
+    return idx
+
+
+def _gradients(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centred-difference gradient magnitude and angle (degrees, [0, 360))."""
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=1, borderType=cv2.BORDER_REPLICATE)
+    if img.ndim == 3:
+        # FHOG: keep, per pixel, the channel with the strongest gradient.
+        mag2 = gx * gx + gy * gy
+        best = np.argmax(mag2, axis=2)[..., None]
+        gx = np.take_along_axis(gx, best, axis=2)[..., 0]
+        gy = np.take_along_axis(gy, best, axis=2)[..., 0]
+    return cv2.cartToPolar(gx, gy, angleInDegrees=True)
+
+
+def _cell_histograms(img: np.ndarray, cell: int) -> np.ndarray:
+    """(Hc, Wc, 18) orientation histograms with linear orientation and bilinear spatial votes."""
+    h, w = img.shape[:2]
+    hc, wc = h // cell, w // cell
+    img = img[:hc * cell, :wc * cell]
+    h, w = hc * cell, wc * cell
+    mag, ang = _gradients(img)
+    # Linear vote between the two nearest of 18 bins centred at 0, 20, .. 340 degrees.
+    b = ang.ravel()
+    b *= np.float32(_N_BINS / 360.0)
+    np.minimum(b, np.float32(_N_BINS - 1e-3), out=b)    # cartToPolar may return 360.0
+    b0 = b.astype(np.intp)                               # floor, since b >= 0
+    m = mag.ravel()
+    w1 = b - b0.astype(np.float32)
+    w1 *= m                                              # vote to the upper bin
+    m -= w1                                              # vote to the lower bin
+    idx = b0                                             # fresh array: reuse it in place
+    idx += _subcell_index(h, w, cell)
+    n = (2 * hc) * (2 * wc) * (_N_BINS + 1)
+    sub = np.bincount(idx, m, minlength=n)
+    idx += 1
+    sub += np.bincount(idx, w1, minlength=n)
+    sub = sub.reshape(2 * hc, 2 * wc, _N_BINS + 1)
+    sub[:, :, 0] += sub[:, :, _N_BINS]
+    sub = sub[:, :, :_N_BINS].astype(np.float32)
+    # Bilinear spatial interpolation at half-cell resolution: a cell's triangular weight over the
+    # four half-cells at distance 0.5 and 1.5 half-cells from its centre is (0.25, 0.75, 0.75, 0.25).
+    pad = np.pad(sub, ((1, 1), (0, 0), (0, 0)))
+    rows = (0.25 * pad[0:2 * hc:2] + 0.75 * pad[1:2 * hc + 1:2]
+            + 0.75 * pad[2:2 * hc + 2:2] + 0.25 * pad[3:2 * hc + 3:2])
+    pad = np.pad(rows, ((0, 0), (1, 1), (0, 0)))
+    return (0.25 * pad[:, 0:2 * wc:2] + 0.75 * pad[:, 1:2 * wc + 1:2]
+            + 0.75 * pad[:, 2:2 * wc + 2:2] + 0.25 * pad[:, 3:2 * wc + 3:2])
+
+
+def fhog(image: np.ndarray, cell: int = 8, clip: float = 0.2, color: bool = False) -> np.ndarray:
+    """FHOG features of one image (one pyramid level).
+
+    Parameters
+    ----------
+    image : ndarray
+        Gray (H, W) or BGR (H, W, 3), any numeric dtype (uint8 expected).
+    cell : int
+        Cell side in pixels (even).
+    clip : float
+        Truncation of normalised histogram values.
+    color : bool
+        Use the strongest colour channel's gradient (FHOG) instead of the gray gradient.
+
+    Returns
+    -------
+    ndarray, shape (H // cell, W // cell, 31), float32
+        Columns 0-17 contrast-sensitive, 18-26 contrast-insensitive, 27-30 texture.
+    """
+    if cell < 2 or cell % 2:
+        raise ValueError(f"cell must be an even number of pixels >= 2, got {cell}")
+    tune_malloc()
+    img = to_gray_float(image, color)
+    hc, wc = img.shape[0] // cell, img.shape[1] // cell
+    if hc < 1 or wc < 1:
+        raise ValueError(f"image {img.shape[:2]} is smaller than one {cell}-px cell")
+    hist = _cell_histograms(img, cell)                       # (hc, wc, 18)
+    insens = hist[:, :, :9] + hist[:, :, 9:]                 # (hc, wc, 9)
+    energy = np.einsum("ijk,ijk->ij", insens, insens)        # squared norm per cell
+    # Energy of the 2x2 blocks with corners between cells (edge-replicated): block (i, j) covers
+    # cells (i-1..i, j-1..j) of the padded grid; blk has shape (hc + 1, wc + 1).
+    e = np.pad(energy, 1, mode="edge")
+    blk = e[:-1, :-1] + e[1:, :-1] + e[:-1, 1:] + e[1:, 1:]
+    # The four blocks containing cell (i, j): top-left, top-right, bottom-left, bottom-right.
+    norms = np.stack([blk[:-1, :-1], blk[:-1, 1:], blk[1:, :-1], blk[1:, 1:]])
+    inv = 1.0 / np.sqrt(norms + _EPS)                        # (4, hc, wc)
+    out = np.empty((hc, wc, FEATURE_DIM), np.float32)
+    sens_sum = np.zeros((hc, wc, _N_BINS), np.float32)
+    ins_sum = np.zeros((hc, wc, 9), np.float32)
+    for k in range(4):
+        hs = np.minimum(hist * inv[k][:, :, None], clip)
+        sens_sum += hs
+        ins_sum += np.minimum(insens * inv[k][:, :, None], clip)
+        # Texture: summed clipped sensitive energy under normalisation k (FHOG's 0.2357 = 1/sqrt(18)).
+        out[:, :, 27 + k] = 0.2357 * hs.sum(axis=2)
+    out[:, :, :18] = 0.5 * sens_sum
+    out[:, :, 18:27] = 0.5 * ins_sum
+    return out
+
+
+@dataclass
+class HogPyramid:
+    """HOG features of one image at several scales.
+
+    Attributes
+    ----------
+    levels : dict[int, ndarray]
+        Level index ``k`` -> features (Hc, Wc, 31) float32 of the image resized by
+        ``2 ** (-k / scales_per_octave)``.
+    image_size : tuple of int
+        (width, height) of the input image in pixels.
+    config : dict
+        HOG parameters used (cell, scales_per_octave, clip, color).
+    sizes : dict[int, tuple]
+        Level -> (width, height) in pixels of the resized image.
+    """
+
+    levels: dict[int, np.ndarray]
+    image_size: tuple[int, int]
+    config: dict
+    sizes: dict[int, tuple[int, int]] = field(default_factory=dict)
+
+    @property
+    def cell(self) -> int:
+        return int(self.config["cell"])
+
+    @property
+    def scales_per_octave(self) -> int:
+        return int(self.config["scales_per_octave"])
+
+    def scale(self, k: int) -> float:
+        """Actual scale of level ``k`` (resized width / input width, per axis)."""
+        w, h = self.sizes[k]
+        return 0.5 * (w / self.image_size[0] + h / self.image_size[1])
+
+    def scale_xy(self, k: int) -> tuple[float, float]:
+        w, h = self.sizes[k]
+        return w / self.image_size[0], h / self.image_size[1]
+
+    def window_centre(self, k: int, row: float, col: float, fh: int, fw: int) -> tuple[float, float]:
+        """Centre, in input-image pixels, of the fh x fw cell window with top-left cell (row, col).
+
+        Accepts fractional (sub-cell refined) row and col.
+        """
+        sx, sy = self.scale_xy(k)
+        c = self.cell
+        # Level pixel edges -> input pixel edges: u_in = u_level / s (pixel-edge coordinates).
+        x = (c * (col + 0.5 * fw)) / sx - 0.5
+        y = (c * (row + 0.5 * fh)) / sy - 0.5
+        return x, y
+
+    def cell_at(self, k: int, x: float, y: float, fh: int, fw: int) -> tuple[float, float]:
+        """Inverse of :meth:`window_centre`: fractional top-left cell (row, col) of a window of
+        fh x fw cells centred at input pixel (x, y)."""
+        sx, sy = self.scale_xy(k)
+        c = self.cell
+        return (y + 0.5) * sy / c - 0.5 * fh, (x + 0.5) * sx / c - 0.5 * fw
+
+    def matches(self, config: dict) -> bool:
+        """True if this pyramid was built with the HOG parameters in ``config``."""
+        return all(self.config.get(key) == config.get(key) for key in default_config)
+
+
+def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None) -> HogPyramid:
+    """HOG pyramid of one image.
+
+    Parameters
+    ----------
+    image : ndarray
+        Gray or BGR image.
+    config : dict, optional
+        Overrides of :data:`default_config`.
+    levels : iterable of int, optional
+        Level indices to compute (default ``0 .. 2 * scales_per_octave``, i.e. two octaves).
+        Levels too small to hold one cell are skipped.
+
+    Returns
+    -------
+    HogPyramid
+    """
+    cfg = {**default_config, **(config or {})}
+    cfg = {k: cfg[k] for k in default_config}
+    spo, cell = int(cfg["scales_per_octave"]), int(cfg["cell"])
+    img = to_gray_float(image, bool(cfg["color"]))
+    h, w = img.shape[:2]
+    ks = range(0, 2 * spo + 1) if levels is None else sorted({int(k) for k in levels})
+    out, sizes = {}, {}
+    for k in ks:
+        s = float(level_scale(k, spo))
+        lw, lh = int(round(w * s)), int(round(h * s))
+        if lw < cell or lh < cell:
+            continue
+        lvl = img if (lw, lh) == (w, h) else cv2.resize(img, (lw, lh), interpolation=_INTERP)
+        out[k] = fhog(lvl, cell, float(cfg["clip"]), bool(cfg["color"]))
+        sizes[k] = (lw, lh)
+    return HogPyramid(out, (w, h), cfg, sizes)
+
+
+def _time(fn, repeat: int = 20) -> float:
+    fn()
+    t = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        t.append(time.perf_counter() - t0)
+    return 1000.0 * float(np.median(t))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description="Time the HOG level and pyramid on one image.")
+    ap.add_argument("image", nargs="?", help="image file (default: random 640x480 texture)")
+    ap.add_argument("--levels", type=int, default=9, help="pyramid levels 0..N-1")
+    args = ap.parse_args(argv)
+    if args.image:
+        img = cv2.imread(args.image, cv2.IMREAD_COLOR)
+        if img is None:
+            from surveys.errors import DataError
+            raise DataError(args.image, "cannot read or decode image")
+    else:
+        rng = np.random.default_rng(0)
+        img = cv2.GaussianBlur(rng.integers(0, 255, (480, 640), dtype=np.uint8), (5, 5), 1.5)
+    print(json.dumps({
+        "image": list(img.shape[:2]),
+        "hog_ms_per_level": round(_time(lambda: fhog(img)), 2),
+        "hog_pyramid_ms": round(_time(lambda: build_pyramid(img, levels=range(args.levels))), 2),
+        "levels": args.levels,
+    }))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

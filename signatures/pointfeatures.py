@@ -1,0 +1,425 @@
+"""Point-feature baselines: OpenCV ORB / SIFT extraction, descriptor matching, displacement voting.
+
+The heading benchmark (GRIEF protocol, Krajník et al. RAS 2017) and the point-feature localiser
+both use these pieces, so each stage is its own function:
+
+1. :func:`extract` -- detect, keep the ``n_features`` strongest keypoints by detector response,
+   optionally make them *upright* (orientation forced to 0 before the descriptor is computed, as
+   the GRIEF protocol does: a ground robot's camera does not roll, so rotation invariance only
+   costs distinctiveness).
+2. :func:`match` -- brute-force 2-NN matching with one of three filters: Lowe's ratio test,
+   the DAPC adaptive-distance test (Zhang et al., "Multi-Modal Scene Matching Location Algorithm
+   Based on M2Det", CMC 2023, eq. 6-7: keep a match when ``d1 < d2 - mean(d2 - d1)``), or none;
+   optionally mutual (cross-checked) nearest neighbours.
+3. :func:`vote_displacement` -- histogram voting of the matches' horizontal offsets: the most
+   populated 20-px bin wins and the estimate is the mean offset inside it (as the GRIEF evaluation
+   code does).  ``voting="fixed"`` uses a grid of bins aligned at 0 (the plain reading of
+   "20-px bins"); ``voting="sliding"`` slides the bin over all positions, which is what GRIEF's
+   ``match_all`` does (it tries the 20 one-pixel shifts of the grid) and avoids splitting a peak
+   that straddles a bin edge.
+
+Run ``python -m signatures.pointfeatures MAP LIVE`` to match two images and print the estimate.
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+__all__ = ["default_config", "PointFeatures", "Matches", "Vote", "extract", "match",
+           "vote_displacement", "estimate_displacement", "FEATURE_KINDS", "MATCH_FILTERS"]
+
+FEATURE_KINDS = ("orb", "sift", "rootsift")
+MATCH_FILTERS = ("ratio", "dapc", "none")
+
+#: Defaults = the published GRIEF protocol (1600 upright features, ratio 0.9, 20-px bins).
+default_config = {
+    "n_features": 1600,
+    "upright": True,
+    # ORB(1600, 1.2, 8, 31, 0, 2, HARRIS, 31) as in GRIEF's match_all; fastThreshold is OpenCV's.
+    "orb": {"scaleFactor": 1.2, "nlevels": 8, "edgeThreshold": 31, "firstLevel": 0, "WTA_K": 2,
+            "patchSize": 31, "fastThreshold": 20},
+    # SIFT(0, 3, contrastThreshold, 10, 1.6).  GRIEF used contrast 0 and then kept the strongest
+    # 1600; OpenCV's default 0.04 leaves fewer than 1600 on low-contrast (snow) images.
+    "sift": {"nOctaveLayers": 3, "contrastThreshold": 0.04, "edgeThreshold": 10, "sigma": 1.6},
+    "match": {"filter": "ratio", "ratio": 0.9, "mutual": False},
+    "vote": {"bin_px": 20.0, "voting": "sliding", "estimate": "mean", "origin": 0.0,
+             "max_dy": None},
+    # SIFT emits one keypoint per orientation peak; once upright they are identical, so their
+    # descriptors are each other's nearest neighbours and fail every ratio test.  Dropping the
+    # copies before choosing the N strongest keeps N distinct features.
+    "dedupe": True,
+}
+
+
+@dataclass
+class PointFeatures:
+    """Keypoints and descriptors of one image.
+
+    Attributes
+    ----------
+    kind : str
+        ``"orb"``, ``"sift"`` or ``"rootsift"``.
+    xy : ndarray, shape (N, 2), float32
+        Keypoint positions, pixels (x right, y down).
+    response, size, angle : ndarray, shape (N,)
+        Detector response (strongest first), diameter in px, orientation in degrees (0 if upright).
+    octave : ndarray, shape (N,), int
+        OpenCV's packed octave field (needed to recompute descriptors).
+    descriptors : ndarray, shape (N, D)
+        uint8 (ORB, compared with Hamming distance) or float32 (SIFT, L2).
+    image_shape : tuple
+        (height, width) of the source image.
+    """
+
+    kind: str
+    xy: np.ndarray
+    response: np.ndarray
+    size: np.ndarray
+    angle: np.ndarray
+    octave: np.ndarray
+    descriptors: np.ndarray
+    image_shape: tuple = field(default=(0, 0))
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+    @property
+    def norm(self) -> int:
+        """OpenCV norm for this descriptor type."""
+        return cv2.NORM_HAMMING if self.kind == "orb" else cv2.NORM_L2
+
+    def keypoints(self) -> list[cv2.KeyPoint]:
+        """The keypoints as ``cv2.KeyPoint`` objects (for drawing or recomputing)."""
+        return [cv2.KeyPoint(float(x), float(y), float(s), float(a), float(r), int(o))
+                for (x, y), s, a, r, o in zip(self.xy, self.size, self.angle, self.response,
+                                              self.octave)]
+
+    def subset(self, index) -> "PointFeatures":
+        """Features selected by a boolean mask or index array."""
+        return PointFeatures(self.kind, self.xy[index], self.response[index], self.size[index],
+                             self.angle[index], self.octave[index], self.descriptors[index],
+                             self.image_shape)
+
+
+@dataclass
+class Matches:
+    """Putative correspondences from features ``a`` (query) to ``b`` (train).
+
+    Attributes
+    ----------
+    query, train : ndarray, shape (M,), int
+        Indices into a and b.
+    distance : ndarray, shape (M,)
+        Descriptor distance to the nearest neighbour.
+    second : ndarray, shape (M,)
+        Distance to the second-nearest neighbour (inf when b had a single feature).
+    """
+
+    query: np.ndarray
+    train: np.ndarray
+    distance: np.ndarray
+    second: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.query)
+
+    def subset(self, index) -> "Matches":
+        return Matches(self.query[index], self.train[index], self.distance[index],
+                       self.second[index])
+
+
+@dataclass
+class Vote:
+    """Outcome of histogram voting.
+
+    Attributes
+    ----------
+    displacement : float
+        Estimated horizontal displacement b - a, pixels (NaN when nothing voted).
+    support : int
+        Votes in the winning bin.
+    n_votes : int
+        Matches that voted (after the optional vertical gate).
+    inliers : ndarray of bool, shape (M,)
+        Matches in the winning bin.
+    bin : tuple of float
+        [low, high) offset range of the winning bin.
+    """
+
+    displacement: float
+    support: int
+    n_votes: int
+    inliers: np.ndarray
+    bin: tuple = (np.nan, np.nan)
+
+
+def _as_gray(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.dtype != np.uint8:
+        raise ValueError(f"expected a uint8 image, got {image.dtype}")
+    return image
+
+
+def _make(kind: str, config: dict):
+    if kind == "orb":
+        # nfeatures bounds what the detector keeps per pyramid level; we re-sort by response below.
+        return cv2.ORB_create(nfeatures=config["n_features"], **config["orb"])
+    if kind in ("sift", "rootsift"):
+        # nfeatures=0: keep all, so that the N strongest are chosen *after* removing the
+        # duplicate keypoints SIFT makes for secondary orientations (identical once upright).
+        return cv2.SIFT_create(nfeatures=0, **config["sift"])
+    raise ValueError(f"unknown feature kind {kind!r}; choose from {FEATURE_KINDS}")
+
+
+def _merge(config: dict | None) -> dict:
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
+    for k, v in (config or {}).items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k].update(v)
+        else:
+            out[k] = v
+    return out
+
+
+def extract(image: np.ndarray, kind: str = "orb", n_features: int | None = None,
+            upright: bool | None = None, config: dict | None = None) -> PointFeatures:
+    """Detect keypoints, keep the strongest, compute (upright) descriptors.
+
+    Parameters
+    ----------
+    image : ndarray
+        uint8 gray or BGR image.
+    kind : {"orb", "sift", "rootsift"}
+        Detector + descriptor.  ``rootsift`` = SIFT with the Hellinger (L1-normalised square
+        root) mapping of Arandjelović & Zisserman.
+    n_features : int, optional
+        Keep this many strongest keypoints (by detector response); default 1600.
+    upright : bool, optional
+        Force every orientation to 0 before describing (default True).
+    config : dict, optional
+        Overrides of :data:`default_config` (e.g. ``{"sift": {"contrastThreshold": 0.0}}``).
+
+    Returns
+    -------
+    PointFeatures
+        Sorted by decreasing response.
+    """
+    cfg = _merge(config)
+    if n_features is not None:
+        cfg["n_features"] = int(n_features)
+    if upright is not None:
+        cfg["upright"] = bool(upright)
+    n = cfg["n_features"]
+    gray = _as_gray(image)
+    algo = _make(kind, cfg)
+    kps = algo.detect(gray, None)
+    if cfg["upright"] and cfg["dedupe"]:
+        kps = _dedupe(kps)
+    kps = sorted(kps, key=lambda k: -k.response)[:n] if n > 0 else list(kps)
+    if cfg["upright"]:
+        for k in kps:
+            k.angle = 0.0
+    kps, desc = algo.compute(gray, kps)
+    if desc is None or len(kps) == 0:
+        dim, dtype = (32, np.uint8) if kind == "orb" else (128, np.float32)
+        desc, kps = np.zeros((0, dim), dtype), []
+    if len(kps):
+        # ORB's compute() regroups keypoints by pyramid level and drops those near the border:
+        # restore strongest-first order so callers may take prefixes.
+        order = np.argsort([-k.response for k in kps], kind="stable")
+        kps = [kps[i] for i in order]
+        desc = desc[order]
+    if kind == "rootsift" and len(desc):
+        desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)
+    return PointFeatures(
+        kind=kind,
+        xy=np.array([k.pt for k in kps], np.float32).reshape(-1, 2),
+        response=np.array([k.response for k in kps], np.float32),
+        size=np.array([k.size for k in kps], np.float32),
+        angle=np.array([k.angle for k in kps], np.float32),
+        octave=np.array([k.octave for k in kps], np.int64),
+        descriptors=np.ascontiguousarray(desc),
+        image_shape=gray.shape[:2])
+
+
+def _dedupe(kps) -> list:
+    """Drop keypoints that differ only in orientation (SIFT emits one per histogram peak)."""
+    seen, out = set(), []
+    for k in kps:
+        key = (round(k.pt[0], 2), round(k.pt[1], 2), round(k.size, 2), k.octave)
+        if key not in seen:
+            seen.add(key)
+            out.append(k)
+    return out
+
+
+def _knn(da: np.ndarray, db: np.ndarray, norm: int):
+    """2-NN of each row of da among rows of db: (index1, dist1, dist2)."""
+    m = cv2.BFMatcher(norm, crossCheck=False)
+    k = min(2, len(db))
+    res = m.knnMatch(da, db, k=k)
+    idx = np.array([r[0].trainIdx if r else -1 for r in res], np.int64)
+    d1 = np.array([r[0].distance if r else np.inf for r in res], np.float64)
+    d2 = np.array([r[1].distance if len(r) > 1 else np.inf for r in res], np.float64)
+    return idx, d1, d2
+
+
+def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: float = 0.9,
+          mutual: bool = False, dapc_over: str = "all") -> Matches:
+    """Match descriptors of ``a`` to ``b`` (brute force, 2 nearest neighbours).
+
+    Parameters
+    ----------
+    a, b : PointFeatures
+        Same descriptor kind.
+    filter : {"ratio", "dapc", "none"}
+        ``ratio``: keep when ``d1 < ratio * d2`` (Lowe).  ``dapc``: keep when
+        ``d1 < d2 - mean(d2 - d1)``, the mean over all of a's 2-NN pairs -- a threshold that adapts
+        to how separable this image pair's descriptors are (seed 002, eq. 6-7).  ``none``: keep
+        every nearest neighbour.
+    ratio : float
+        Ratio for ``filter="ratio"``.
+    mutual : bool
+        Also require a's feature to be b's feature's nearest neighbour (cross-check).
+    dapc_over : {"all", "mutual"}
+        Which 2-NN pairs the DAPC mean gap is taken over: all of a's (default), or -- with
+        ``mutual`` -- only the mutual pairs, the order of seed 002's procedure (bidirectional
+        matching first, steps c-e, then the dynamic distance test, step f).
+
+    Returns
+    -------
+    Matches
+    """
+    if a.kind != b.kind:
+        raise ValueError(f"cannot match {a.kind} descriptors with {b.kind}")
+    if filter not in MATCH_FILTERS:
+        raise ValueError(f"unknown match filter {filter!r}; choose from {MATCH_FILTERS}")
+    empty = Matches(*(np.zeros(0, t) for t in (np.int64, np.int64, float, float)))
+    if len(a) == 0 or len(b) == 0:
+        return empty
+    if dapc_over not in ("all", "mutual"):
+        raise ValueError(f"dapc_over must be 'all' or 'mutual', got {dapc_over!r}")
+    if dapc_over == "mutual" and filter == "dapc" and not mutual:
+        raise ValueError("dapc_over='mutual' needs mutual=True")
+    idx, d1, d2 = _knn(a.descriptors, b.descriptors, a.norm)
+    keep = idx >= 0
+    if mutual:
+        back, _, _ = _knn(b.descriptors, a.descriptors, a.norm)
+        keep &= back[np.clip(idx, 0, None)] == np.arange(len(a))
+    if filter == "ratio":
+        keep &= d1 < ratio * d2
+    elif filter == "dapc":
+        pool = (idx >= 0) if dapc_over == "all" else keep
+        finite = np.isfinite(d2) & pool
+        gap = float(np.mean(d2[finite] - d1[finite])) if finite.any() else 0.0
+        keep &= d1 < d2 - gap
+    q = np.flatnonzero(keep)
+    return Matches(q, idx[q], d1[q], d2[q])
+
+
+def vote_displacement(dx: np.ndarray, bin_px: float = 20.0, voting: str = "sliding",
+                      estimate: str = "mean", origin: float = 0.0,
+                      dy: np.ndarray | None = None, max_dy: float | None = None) -> Vote:
+    """Histogram voting over horizontal offsets.
+
+    Parameters
+    ----------
+    dx : ndarray, shape (M,)
+        Horizontal offset of each match (x in b minus x in a).
+    bin_px : float
+        Bin width (20 px in the GRIEF protocol).
+    voting : {"fixed", "sliding"}
+        ``fixed``: bins ``[origin + k * bin_px, origin + (k + 1) * bin_px)``.  ``sliding``: the
+        bin may start anywhere (the best window of width ``bin_px``), the continuous form of
+        GRIEF's 20 shifted grids.
+    estimate : {"mean", "centre"}
+        Mean offset of the winning bin's members (GRIEF) or the bin's centre.
+    origin : float
+        Bin-grid origin for ``fixed`` (e.g. -1024 for ``np.histogram`` over [-1024, 1024]).
+    dy, max_dy : optional
+        Vertical offsets and a gate: matches with ``|dy| >= max_dy`` do not vote.
+
+    Returns
+    -------
+    Vote
+        Ties go to the bin with the smaller offset (deterministic).
+    """
+    dx = np.asarray(dx, float)
+    ok = np.isfinite(dx)
+    if max_dy is not None and dy is not None:
+        ok &= np.abs(np.asarray(dy, float)) < max_dy
+    inl = np.zeros(len(dx), bool)
+    if not ok.any():
+        return Vote(np.nan, 0, 0, inl)
+    v = dx[ok]
+    if voting == "fixed":
+        k = np.floor((v - origin) / bin_px).astype(np.int64)
+        ks, counts = np.unique(k, return_counts=True)
+        best = ks[np.argmax(counts)]
+        lo, hi = origin + best * bin_px, origin + (best + 1) * bin_px
+        support = int(counts.max())
+    elif voting == "sliding":
+        s = np.sort(v)
+        # window [s_i, s_i + bin_px): count = first index >= s_i + bin_px minus i
+        ends = np.searchsorted(s, s + bin_px, side="left")
+        counts = ends - np.arange(len(s))
+        i = int(np.argmax(counts))
+        lo, hi = s[i], s[i] + bin_px
+        support = int(counts[i])
+    else:
+        raise ValueError(f"unknown voting {voting!r}; choose 'fixed' or 'sliding'")
+    if estimate not in ("mean", "centre"):
+        raise ValueError(f"unknown estimate {estimate!r}; choose 'mean' or 'centre'")
+    member = ok & (dx >= lo) & (dx < hi)
+    inl[member] = True
+    value = dx[member].mean() if estimate == "mean" else 0.5 * (lo + hi)
+    return Vote(float(value), support, int(ok.sum()), inl, (float(lo), float(hi)))
+
+
+def estimate_displacement(a: PointFeatures, b: PointFeatures,
+                          config: dict | None = None) -> tuple[Vote, Matches]:
+    """Match ``a`` (map) to ``b`` (live) and vote the horizontal displacement b - a.
+
+    Returns
+    -------
+    (Vote, Matches)
+        ``vote.inliers`` indexes ``matches``.
+    """
+    cfg = _merge(config)
+    m = match(a, b, **cfg["match"])
+    dx = b.xy[m.train, 0] - a.xy[m.query, 0]
+    dy = b.xy[m.train, 1] - a.xy[m.query, 1]
+    vote = vote_displacement(dx, dy=dy, **cfg["vote"])
+    return vote, m
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("map_image")
+    p.add_argument("live_image")
+    p.add_argument("--kind", default="orb", choices=FEATURE_KINDS)
+    p.add_argument("--filter", default="ratio", choices=MATCH_FILTERS)
+    p.add_argument("--mutual", action="store_true")
+    p.add_argument("--voting", default="sliding", choices=("fixed", "sliding"))
+    args = p.parse_args(argv)
+    imgs = []
+    for path in (args.map_image, args.live_image):
+        img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            p.error(f"{path}: cannot read image")
+        imgs.append(img)
+    fa, fb = (extract(im, args.kind) for im in imgs)
+    vote, m = estimate_displacement(fa, fb, {"match": {"filter": args.filter,
+                                                        "mutual": args.mutual},
+                                             "vote": {"voting": args.voting}})
+    print(f"{len(fa)} / {len(fb)} features, {len(m)} matches, displacement {vote.displacement:.1f}"
+          f" px ({vote.support} votes in [{vote.bin[0]:.0f}, {vote.bin[1]:.0f}))")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

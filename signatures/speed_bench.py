@@ -1,0 +1,156 @@
+"""Speed benchmark of scene signatures (issue §6): ``scenesig bench speed --json OUT``.
+
+Measures, on simulated 640x480 images of one place (``surveys.sim.place_views(preset="demo",
+seed=0, n=31)``; if the simulator is not installed, the procedural place of
+:mod:`signatures.synthetic`, and the JSON says so):
+
+* ``train_seconds_per_place`` -- :func:`signatures.mining.mine_place` on the 31 images with all
+  296 candidate shapes, pyramids included, on **one core** (BLAS, OpenCV and joblib limited to one
+  thread);
+* ``detect_ms_per_frame`` -- one-pass detection of banks of 50 and 200 classifiers on a 640x480
+  frame, whole-image search, pyramid included, on **two cores**; the banks are drawn from the
+  classifiers mined above (with repetition when fewer survived, so filter sizes and levels are
+  realistic).  ``detect_ms_per_frame_windowed`` repeats it with +-40-px search windows, as the
+  localiser runs it;
+* ``hog_pyramid_ms`` (the levels the 50-classifier bank needs) and ``hog_ms_per_level``
+  (640x480, one core);
+* ``blas`` -- the BLAS library numpy uses (threadpoolctl).
+
+Timings are medians over repeats.  Run ``python -m signatures.speed_bench --json OUT``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from signatures import hog as hogmod
+from signatures import mining
+from signatures.bank import Bank
+
+__all__ = ["run_speed_bench", "run_from_args", "place_images"]
+
+
+def place_images(n: int = 31, seed: int = 0):
+    """(images, offsets, source) of one simulated place at 640x480."""
+    try:
+        from surveys.sim import place_views
+    except ImportError:
+        place_views = None
+    if place_views is not None:
+        views = place_views(preset="demo", seed=seed, n=n)
+        images = [np.asarray(v[0]) for v in views]
+        images = [im if im.shape[:2] == (480, 640) else
+                  cv2.resize(im, (640, 480), interpolation=cv2.INTER_AREA) for im in images]
+        return images, np.zeros((len(images), 2)), "surveys.sim.place_views(preset='demo')"
+    from signatures.synthetic import synthetic_place
+    images, offsets = synthetic_place(n, 640, 480, seed=seed)
+    return images, offsets, "signatures.synthetic.synthetic_place (surveys.sim.place_views missing)"
+
+
+def _blas_info() -> dict:
+    """numpy's BLAS (build config) and every BLAS loaded in the process (threadpoolctl)."""
+    out = {"library": "unknown"}
+    try:
+        cfg = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
+        out = {"library": cfg.get("name"), "version": cfg.get("version")}
+    except Exception:   # noqa: BLE001 - informational only
+        pass
+    try:
+        from threadpoolctl import threadpool_info
+        out["loaded"] = [{"api": d.get("internal_api"), "version": d.get("version"),
+                          "architecture": d.get("architecture"), "threads": d.get("num_threads"),
+                          "file": Path(d.get("filepath", "")).name}
+                         for d in threadpool_info() if d.get("user_api") == "blas"]
+    except Exception:   # noqa: BLE001
+        pass
+    return out
+
+
+def _median_ms(fn, repeat: int) -> float:
+    fn()
+    ts = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return 1000.0 * float(np.median(ts))
+
+
+def _bank_of(bank: Bank, n: int, rng) -> Bank:
+    idx = rng.choice(len(bank), size=n, replace=len(bank) < n)
+    return Bank([bank.classifiers[i] for i in np.sort(idx)], bank.image_size)
+
+
+def run_speed_bench(n_images: int = 31, repeat: int = 10, seed: int = 0, progress: bool = True) -> dict:
+    """Run the benchmark and return the result dict (see module docstring)."""
+    from threadpoolctl import threadpool_limits
+    images, offsets, source = place_images(n_images, seed)
+    frame = images[-1]
+    out = {"images": source, "n_images": len(images), "image_size": [640, 480],
+           "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+           "blas": _blas_info()}
+    cv_threads = cv2.getNumThreads()
+    try:
+        # ---------------- one core: HOG and training
+        cv2.setNumThreads(1)
+        with threadpool_limits(limits=1):
+            gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+            out["hog_ms_per_level"] = round(_median_ms(lambda: hogmod.fhog(gray), repeat * 2), 2)
+            t0 = time.perf_counter()
+            bank, stats = mining.mine_place(images, offsets, n_jobs=1, rng=seed, progress=progress)
+            out["train_seconds_per_place"] = round(time.perf_counter() - t0, 2)
+            out["train_stats"] = {k: v for k, v in stats.as_dict().items() if k != "partitions"}
+        if len(bank) == 0:
+            raise RuntimeError("no classifier converged on the benchmark place; cannot time "
+                               "detection")
+        rng = np.random.default_rng(seed)
+        banks = {n: _bank_of(bank, n, rng) for n in (50, 200)}
+        with threadpool_limits(limits=1):
+            lv = banks[50].levels()
+            out["hog_pyramid_levels"] = lv
+            out["hog_pyramid_ms"] = round(_median_ms(
+                lambda: hogmod.build_pyramid(frame, bank.hog, levels=lv), repeat), 2)
+        # ---------------- two cores: detection
+        cv2.setNumThreads(2)
+        with threadpool_limits(limits=2):
+            det, detw = {}, {}
+            for n, b in banks.items():
+                det[str(n)] = round(_median_ms(lambda: b.detect(frame), repeat), 2)
+                nom = np.array([c.nominal_xy for c in b])
+                win = np.concatenate([nom - 40.0, nom + 40.0], axis=1)
+                detw[str(n)] = round(_median_ms(lambda: b.detect(frame, windows=win), repeat), 2)
+            out["detect_ms_per_frame"] = det
+            out["detect_hz"] = {k: round(1000.0 / v, 1) for k, v in det.items()}
+            out["detect_ms_per_frame_windowed"] = detw
+    finally:
+        cv2.setNumThreads(cv_threads)
+    out["threads"] = {"train": 1, "detect": 2}
+    return out
+
+
+def run_from_args(args) -> int:
+    """CLI entry (``scenesig bench speed``): ``args.json`` = output path or None."""
+    res = run_speed_bench(progress=True)
+    text = json.dumps(res, indent=1)
+    print(text)
+    if getattr(args, "json", None):
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(text + "\n")
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", help="write the result JSON here")
+    return run_from_args(ap.parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
