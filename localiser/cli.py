@@ -39,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated conditions, one run each (default: the preset's list)")
     s.add_argument("--camera-hz", type=float, default=None, help="camera rate (default 20 Hz)")
     s.add_argument("--jobs", type=_positive_int, default=1, help="runs rendered in parallel")
+    s.add_argument("--overwrite", action="store_true", help="replace runs already in OUT (default: refuse)")
 
     b = sub.add_parser("bench", help="Benchmarks that print JSON.")
     bsub = b.add_subparsers(dest="bench", required=True, metavar="BENCH")
@@ -49,6 +50,10 @@ def build_parser() -> argparse.ArgumentParser:
     h.add_argument("--json", required=True, help="output JSON file")
     h.add_argument("--figure", default=None, help="figure folder (default: beside the JSON)")
     h.add_argument("--jobs", type=_positive_int, default=2)
+    h.add_argument("--baseline-preset", choices=["grief", "plain"], default="grief",
+                   help="point-feature protocol: grief (published: 1600 upright keypoints, ratio 0.9, "
+                        "20-px histogram voting) or plain (the data set README's reference settings)")
+    h.add_argument("--max-pairs", type=_positive_int, default=None, help="only the first N pairs (quick look)")
     sp = cmd("speed", "signatures.speed_bench", "Training and detection speed on simulated images.", parent=bsub)
     sp.add_argument("--json", required=True, help="output JSON file")
 
@@ -74,14 +79,22 @@ def build_parser() -> argparse.ArgumentParser:
     mode = lo.add_mutually_exclusive_group()
     mode.add_argument("--every", type=_positive_int, default=4, help="detector on every N-th frame (deterministic)")
     mode.add_argument("--realtime", action="store_true", help="threads and queues, stale frames dropped")
+    lo.add_argument("--speed", type=float, default=1.0,
+                    help="with --realtime: replay speed as a multiple of the recorded rate (default 1)")
 
     r = cmd("report", "localiser.report", "HTML report of localisation results.")
     r.add_argument("results", nargs="+", help="localise output folders or a demo folder")
     r.add_argument("--out", required=True)
+    r.add_argument("--runs", nargs="*", default=None, metavar="RUN",
+                   help="survey runs of the results (for speed and INS plots; found automatically when omitted)")
 
     d = cmd("demo", "localiser.demo", "The main job: simulate, build a map, localise, report.")
     d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    d.add_argument("--jobs", type=_positive_int, default=2)
+    d.add_argument("--jobs", type=_positive_int, default=2, help="parallel workers (default 2)")
+    d.add_argument("--preset", choices=["tiny", "demo", "begbroke"], default="demo",
+                   help="simulated world (default demo, ≈300 m; tiny is a one-minute smoke run)")
+    d.add_argument("--camera-hz", type=float, default=None,
+                   help="camera rate of the simulated runs (default 10 Hz; the detector runs at 5 Hz either way)")
     return p
 
 

@@ -23,6 +23,10 @@ the firings into measurements for the eq. 10 solver:
   size at the place, so its classifier (trained at scale ``s_0``) is searched at the pyramid levels
   within ``scale_margin_levels`` of ``s_0 z / z_p`` rather than at its nominal level ±1 -- right when
   the vehicle is metres before or past the place, and fewer levels to build and score.
+* **what to compute** -- the HOG pyramid holds exactly the levels searched, and at each level only
+  the cells the windows' detections can touch (:meth:`signatures.bank.Bank.pyramid`; about half of
+  each level when tracking), bit-identical to the whole level's features there; the small
+  multiplies run on one BLAS thread (``blas_threads``).
 * **prefetching** -- a place's bank is decoded (``Bank.from_arrays``) on a background thread as
   soon as the localiser names the next place, so switching places does not stall detection.
 
@@ -35,6 +39,7 @@ run's INS poses (windowed and whole-image) and prints JSON.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import threading
 import time
@@ -47,7 +52,6 @@ import numpy as np
 from mapping.refine import default_config as refine_default
 from mapping.store import MapStore, PlaceData
 from signatures.bank import Bank
-from signatures.hog import build_pyramid
 from surveys.geometry import Camera, invert
 
 __all__ = ["default_config", "Observation", "Detector", "search_windows", "measurement_covariance",
@@ -65,6 +69,10 @@ default_config = {
     "scale_search": 1,           # whole-image search: pyramid levels either side of the nominal one
     "predict_scale": True,       # windowed search: only the levels within ``scale_margin_levels`` of
     "scale_margin_levels": 0.75,  # the scale predicted from the landmark's depth now and at the place
+    # BLAS threads while detecting (None: leave numpy's setting).  The multiplies are small: a second
+    # thread only spins (~30 % more CPU, taken from the other blocks or the other process), and a
+    # fixed count gives the same floating-point sums -- the same detections -- on every machine.
+    "blas_threads": 1,
 }
 
 
@@ -106,6 +114,25 @@ class Observation:
     def empty(cls, place: int, ms: float = 0.0, searched: int = 0, whole_image: bool = False) -> "Observation":
         return cls(place, np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 3)), np.zeros((0, 3, 3)),
                    np.zeros(0, int), np.zeros(0), np.zeros(0), searched, whole_image, ms)
+
+
+_BLAS = None
+
+
+def _blas_threads(n: int | None):
+    """Context limiting numpy's BLAS to ``n`` threads (no-op for None or without threadpoolctl)."""
+    global _BLAS
+    if n is None:
+        return contextlib.nullcontext()
+    if _BLAS is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+            _BLAS = ThreadpoolController()      # inspecting the loaded libraries costs ~2 ms: once
+        except ImportError:
+            _BLAS = False
+    if _BLAS is False:
+        return contextlib.nullcontext()
+    return _BLAS.limit(limits=int(n), user_api="blas")
 
 
 def projection_jacobians(landmarks: np.ndarray, T_place_vehicle: np.ndarray, camera: Camera,
@@ -285,6 +312,10 @@ class Detector:
         T_place_vehicle, P_prior : motion prior and its covariance; without them (or with
             ``whole_image``) every classifier searches the whole image.
         """
+        with _blas_threads(self.config["blas_threads"]):
+            return self._detect(image, place, T_place_vehicle, P_prior, whole_image)
+
+    def _detect(self, image, place, T_place_vehicle, P_prior, whole_image) -> Observation:
         t0 = time.perf_counter()
         lp = self.place(place)
         data, bank = lp.data, lp.bank
@@ -314,9 +345,9 @@ class Detector:
         levels = None
         if not wide and self.config["predict_scale"]:
             levels = self._predicted_levels(sub, data.landmarks[sel], T_place_vehicle)
-        if levels is not None:
-            # build exactly the levels searched (the bank would build nominal +- scale_search)
-            image = build_pyramid(image, sub.hog, levels=sorted(set().union(*levels)))
+        # Exactly the levels searched, and at each only the cells the windows can reach (a tracking
+        # detector looks at a fraction of each level; those cells equal the whole level's).
+        image = sub.pyramid(image, int(self.config["scale_search"]), levels=levels, windows=windows)
         d = sub.detect(image, windows=windows, top_n=int(self.config["top_n"]), levels=levels,
                        config={"scale_search": int(self.config["scale_search"])})
         x, y, prob = d.x[:, 0], d.y[:, 0], d.prob[:, 0]

@@ -5,9 +5,11 @@
   the estimate is left of the truth.  **Heading error** -- ``yaw_est - yaw_truth`` wrapped to
   (-180°, 180°].  Each is summarised as ``{"median", "mean", "p95"}`` of absolute values.
 * **Blind distance** ``b(s)`` -- distance travelled since the last localisation, along the truth.
-  Before the first localisation of a run it is infinite: the initial oracle seed (like an oracle
-  reset after a failure) is not a localisation, so a run that never localises scores 0 localised and
-  1 blind.  Frame ``i``'s localisation happens at the end of the segment ``[s_{i-1}, s_i]``, over
+  Before the first localisation it is the distance from the start: a replay starts from a known
+  pose (the oracle seed), and the failure rule counts its 20 m from there too -- after 5 m of
+  driving nothing can be "more than 20 m blind".  An oracle *reset* after a failure, by contrast, is
+  not a localisation: the blind distance keeps growing through it, so failures cost blind distance.
+  A run that never localises over L metres scores ``10/L`` localised and ``(L-20)/L`` blind.  Frame ``i``'s localisation happens at the end of the segment ``[s_{i-1}, s_i]``, over
   which ``b`` grows linearly; the distance-weighted shares below are integrated exactly.
 * ``localised_fraction`` -- share of distance with ``b <= 10 m`` (within 10 m after a localisation,
   one place spacing); ``blind_fraction_over_20m`` -- share with ``b > 20 m``.
@@ -144,11 +146,14 @@ def _check_flags(distances, localised, resets=None):
 
 
 def blind_distances(distances, localised) -> np.ndarray:
-    """Distance since the last localisation at each frame (0 at a localised frame, inf before the first)."""
+    """Distance since the last localisation at each frame (0 at a localised frame; before the first,
+    the distance since the start)."""
     s, loc, _ = _check_flags(distances, localised)
+    if not len(s):
+        return s.copy()
     last = np.where(loc, s, -np.inf)
-    last = np.maximum.accumulate(last) if len(s) else last
-    return s - last
+    last[0] = s[0]                      # the start pose is known (oracle seed)
+    return s - np.maximum.accumulate(last)
 
 
 def _over(b_prev: np.ndarray, step: np.ndarray, d) -> np.ndarray:
@@ -159,9 +164,7 @@ def _over(b_prev: np.ndarray, step: np.ndarray, d) -> np.ndarray:
     d = np.asarray(d, dtype=float)
     if d.ndim:
         d = d[:, None]
-    with np.errstate(invalid="ignore"):
-        out = np.clip(b_prev + step - d, 0.0, step)
-    return np.where(np.isinf(b_prev), step, out)
+    return np.clip(b_prev + step - d, 0.0, step)
 
 
 def coverage_metrics(distances, localised, resets=None, failure_distance_m: float = 20.0,
@@ -247,7 +250,7 @@ class EvaluationResult:
     metrics: dict
     lateral_m: np.ndarray           # signed, NaN where not evaluated
     heading_deg: np.ndarray         # signed, NaN where not evaluated
-    blind_m: np.ndarray             # distance since the last localisation (inf before the first)
+    blind_m: np.ndarray             # distance since the last localisation (or the start)
     distance_m: np.ndarray          # cumulative distance travelled (truth)
 
 

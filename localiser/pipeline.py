@@ -163,6 +163,16 @@ class WeakLocaliser:
     def prefetch(self, place: int | None) -> None:
         """Prepare a place that is coming up (e.g. decode its bank in the background)."""
 
+    def prepare(self, image: np.ndarray):
+        """The part of detection that needs the image only -- neither the place nor the prior.
+
+        The replay may call it on another thread, ahead of :meth:`detect` (e.g. point-feature
+        extraction for the next frame while the current one is solved), and then passes its result
+        to :meth:`detect` in place of the image; :meth:`detect` must accept both.  Default: nothing
+        to do (the image itself).
+        """
+        return image
+
     def detect(self, image: np.ndarray, place: int, prior: MotionPrior):
         """Detector stage: image -> observation (anything :meth:`solve` understands)."""
         if type(self).measure is WeakLocaliser.measure:

@@ -39,7 +39,7 @@ from .pipeline import Measurement, MotionPrior, WeakLocaliser, register_method
 from .solver import default_config as solver_default
 from .solver import default_pnp_config, solve_pnp_prior
 
-__all__ = ["default_config", "PointObservation", "PointLocaliser", "keypoint_sigma", "match_to_map"]
+__all__ = ["default_config", "PointObservation", "LiveFrame", "PointLocaliser", "keypoint_sigma", "match_to_map"]
 
 default_config = {
     "n_features": 1000,          # live features per frame (strongest by detector response)
@@ -119,6 +119,22 @@ class PointObservation:
 
 
 @dataclass
+class LiveFrame:
+    """A live image's features (:meth:`PointLocaliser.prepare`): what detection needs of the image.
+
+    Attributes
+    ----------
+    shape : (height, width) of the image.
+    features : its :class:`signatures.pointfeatures.PointFeatures`.
+    ms : extraction time (ms), counted in the detection time.
+    """
+
+    shape: tuple
+    features: PointFeatures
+    ms: float = 0.0
+
+
+@dataclass
 class _MapPlace:
     features: PointFeatures
     xyz: np.ndarray
@@ -188,25 +204,39 @@ class PointLocaliser(WeakLocaliser):
         """The live image's features (same extraction as the map keyframe's)."""
         return extract(image, self.kind, n_features=int(self.config["n_features"]), config=self.config["features"])
 
-    def detect(self, image: np.ndarray, place: int, prior: MotionPrior | None = None) -> PointObservation:
+    def prepare(self, image: np.ndarray) -> LiveFrame:
+        """Extract the live image's features (needs neither place nor prior: the replay runs it
+        ahead, on another thread, while the previous frame is solved)."""
+        if isinstance(image, LiveFrame):
+            return image
         t0 = time.perf_counter()
         h, w = image.shape[:2]
         if (w, h) != (self.camera.width, self.camera.height):
             raise ValueError(f"image is {w}x{h} but the camera is {self.camera.width}x{self.camera.height}")
+        return LiveFrame((h, w), self.live_features(image), (time.perf_counter() - t0) * 1e3)
+
+    def detect(self, image, place: int, prior: MotionPrior | None = None) -> PointObservation:
+        """Match the live features (an image, or its :meth:`prepare` result) to the place's map points.
+
+        ``ms`` of the observation includes the extraction, wherever it ran.
+        """
+        t0 = time.perf_counter()
+        frame = self.prepare(image)
+        ms_extract = frame.ms if frame is image else 0.0   # extracted here: already in the elapsed time
         mp = self._place(place)
-        live = self.live_features(image)
+        live = frame.features
         cfg = self.config
         if mp.features is None or not len(mp.features) or not len(live):
             return PointObservation(place, np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 3)), None,
                                     np.zeros(0, int), len(live), 0 if mp.features is None else len(mp.features),
-                                    (time.perf_counter() - t0) * 1e3)
+                                    ms_extract + (time.perf_counter() - t0) * 1e3)
         m = match_to_map(live, mp.features, cfg["filter"], bool(cfg["mutual"]), float(cfg["ratio"]))
         uv = live.xy[m.train].astype(float)
         sig = keypoint_sigma(live.subset(m.train), float(cfg["pixel_sigma"]), cfg["features"])
         R = (sig ** 2)[:, None, None] * np.eye(2)[None]
         cov = mp.cov[m.query] if mp.cov is not None else None
         return PointObservation(place, uv, R, mp.xyz[m.query], cov, m.query, len(live), len(mp.features),
-                                (time.perf_counter() - t0) * 1e3)
+                                ms_extract + (time.perf_counter() - t0) * 1e3)
 
     # -------------------------------------------------------------------------------- solver
     def solve(self, obs: PointObservation, place: int, prior: MotionPrior | None) -> Measurement:

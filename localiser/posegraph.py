@@ -259,20 +259,21 @@ class PoseGraph:
             del self._odo_times[:drop]
             del self._odo[:drop]
 
-    def _odometry(self, t_a: float, t_b: float) -> tuple[np.ndarray, np.ndarray]:
+    def _odometry(self, t_a: float, t_b: float, covariance: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Relative pose ``T_a_b`` and its covariance from stored odometry, ``t_a <= t_b``.
 
         A sample's increment is split linearly in its tangent space where a time falls inside it.
+        With ``covariance=False`` the covariance is not propagated (None; the pose is the same).
         """
         if t_b < t_a:
             raise ValueError("t_b must not precede t_a")
         T = np.eye(4)
         C = np.zeros((6, 6))
-        prev = self._odo_start
-        for ti, (inc, cov) in zip(self._odo_times, self._odo):
-            if ti <= t_a:
-                prev = ti
-                continue
+        # Samples ending at or before t_a contribute nothing: start after them (the window holds
+        # ~100 samples and this runs for every frame's estimate).
+        j = bisect.bisect_right(self._odo_times, t_a)
+        prev = self._odo_times[j - 1] if j > 0 else self._odo_start
+        for ti, (inc, cov) in zip(self._odo_times[j:], self._odo[j:]):
             lo, hi = max(prev, t_a), min(ti, t_b)
             if hi > lo:
                 frac = (hi - lo) / (ti - prev)
@@ -280,13 +281,14 @@ class PoseGraph:
                     piece, pcov = pose_exp(frac * pose_log(inc)), frac * cov
                 else:
                     piece, pcov = inc, cov
-                Ad = _adjoint(invert(piece))
-                C = Ad @ C @ Ad.T + pcov
+                if covariance:
+                    Ad = _adjoint(invert(piece))
+                    C = Ad @ C @ Ad.T + pcov
                 T = T @ piece
             if ti >= t_b:
                 break
             prev = ti
-        return T, C
+        return T, (C if covariance else None)
 
     # ----------------------------------------------------------------------- localisation
     def add_localisation(self, t: float, T_world_vehicle: np.ndarray, cov: np.ndarray | None = None,
@@ -404,7 +406,7 @@ class PoseGraph:
             raise ValueError(f"t={t} is before the window (oldest keyframe at {self._kf_times[0]})")
         i = bisect.bisect_right(self._kf_times, t) - 1
         T_k = self._smoother.calculateEstimatePose3(self._kf_keys[i]).matrix()
-        return T_k @ self._odometry(self._kf_times[i], t)[0]
+        return T_k @ self._odometry(self._kf_times[i], t, covariance=False)[0]
 
     def covariance(self) -> np.ndarray:
         """6x6 marginal covariance of the latest pose (vehicle frame, GTSAM convention).

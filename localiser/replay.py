@@ -6,7 +6,9 @@ Two modes (issue 5 §1):
   detector runs on every ``every``-th frame (4: 5 Hz on a 20 Hz camera, as in the paper) and the
   output is the same on every run.  A frame is processed once the odometry covers its timestamp
   (as a vehicle buffers an image until the odometry that spans it arrives), so the motion prior is
-  interpolated, never extrapolated.
+  interpolated, never extrapolated.  The blocks run in that order on the main thread; only the
+  next detector frame's decoding and image-only preparation (:meth:`WeakLocaliser.prepare`, e.g.
+  ORB/SIFT extraction) run ahead on a worker thread, which changes no result.
 * **real-time** (``--realtime``): the data are played at their own timestamps (``speed`` times
   faster if asked); the detector and the solver run in their own threads, each fed through a
   one-slot mailbox that keeps only the newest item, so a frame that arrives while the detector is
@@ -19,6 +21,11 @@ Outputs in DIR: ``trajectory.tum`` (the estimate at every frame time; evo reads 
 distance_since_localisation), ``metrics.json`` (see :func:`compute_metrics`) and ``trajectory.png``
 (estimate, truth and INS/GPS on the map; lateral error over distance with the stretches within 10 m
 of a localisation shaded and the resets marked).
+
+Timings in ``metrics.json``: ``ms_per_detection`` is the detector block per frame (for point
+features including the extraction, wherever it ran), ``ms_per_solve`` the solver, and
+``realtime_factor`` the data duration over the wall time of the replay loop alone (opening the map
+and the run, the evaluation and writing the outputs are not counted).
 
 The run's INS/GPS poses (``groundtruth.tum``) are the *oracle*: they initialise the localiser and
 reset it after a failure, and are never used to localise.  The exact truth (``truth.tum``) is read
@@ -52,6 +59,8 @@ __all__ = ["default_config", "ReplayResult", "replay", "reference_path", "comput
 
 default_config = {
     "every": 4,                  # deterministic mode: detector on every N-th frame
+    "prefetch": True,            # deterministic mode: load and prepare (WeakLocaliser.prepare) the next
+                                 # detector frame on a worker thread while the current one is processed
     "speed": 1.0,                # real-time mode: playback speed (2 = twice as fast as recorded)
     "max_path_distance_m": None,  # frames further than this from the map are left out of the errors
     "localiser": {},             # overrides of localiser.pipeline.default_config
@@ -182,21 +191,67 @@ class _Recorder:
                 self.ms_solve.append(ms_solve)
 
 
-def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t: float, rec: _Recorder) -> None:
+class _FramePrefetcher:
+    """Loads and prepares the detector's frames one ahead, on a worker thread (deterministic mode).
+
+    Decoding the next detector frame and the method's image-only work on it
+    (:meth:`WeakLocaliser.prepare`, e.g. feature extraction) need neither the place nor the prior,
+    so they overlap with the current frame's detection, solve and pose-graph update -- on a
+    two-core machine the other core is otherwise idle during the single-threaded parts.  The
+    results are the same as loading inline; the preparation time is still counted as detection.
+    """
+
+    def __init__(self, run: SurveyRun, method: WeakLocaliser, frames):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.run, self.method = run, method
+        self._frames = [int(i) for i in frames]
+        self._next = {a: b for a, b in zip(self._frames, self._frames[1:])}
+        self._pending: dict = {}
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frame-prefetch")
+
+    def _load(self, i: int):
+        img = self.run.image(i, gray=not self.method.color)
+        t0 = time.perf_counter()
+        prepared = self.method.prepare(img)
+        return prepared, 1e3 * (time.perf_counter() - t0)
+
+    def get(self, i: int):
+        """``(prepared image, ms spent preparing it)`` of frame i; starts loading the next one."""
+        fut = self._pending.pop(i, None)
+        if fut is None:
+            fut = self._pool.submit(self._load, i)
+        nxt = self._next.get(i)
+        if nxt is not None and nxt not in self._pending:
+            self._pending[nxt] = self._pool.submit(self._load, nxt)
+        return fut.result()
+
+    def close(self) -> None:
+        for fut in self._pending.values():
+            fut.cancel()
+        self._pending.clear()
+        self._pool.shutdown(wait=True)
+
+
+def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t: float, rec: _Recorder,
+                frames: _FramePrefetcher | None = None) -> None:
     """Detector + solver for frame i at time t (deterministic mode: inline)."""
     prior = loc.prior(t)
     method.prefetch(prior.next_place)
-    img = run.image(i, gray=not method.color)
+    if frames is not None:
+        img, ms_prepare = frames.get(i)
+    else:
+        img, ms_prepare = run.image(i, gray=not method.color), 0.0
     t0 = time.perf_counter()
-    obs = method.detect(img, prior.place, prior)
+    obs = method.detect(img, prior.place, prior)      # an image or its prepare() result
     t1 = time.perf_counter()
     m = Measurement.coerce(method.solve(obs, prior.place, prior))
     t2 = time.perf_counter()
     accepted = loc.add_measurement(t, m)
-    rec.measurement(i, prior.place, m, accepted, 1e3 * (t1 - t0), 1e3 * (t2 - t1))
+    rec.measurement(i, prior.place, m, accepted, ms_prepare + 1e3 * (t1 - t0), 1e3 * (t2 - t1))
 
 
-def _deterministic(method, loc, run, rec, every, progress):
+def _deterministic(method, loc, run, rec, every, progress, prefetch=True):
     from tqdm import tqdm
 
     ft = rec.times
@@ -207,24 +262,29 @@ def _deterministic(method, loc, run, rec, every, progress):
     n = len(ft)
     fi = 0
     bar = tqdm(total=n, desc=f"localise {run.name}", unit="frame", disable=not progress)
+    frames = _FramePrefetcher(run, method, range(0, n, every)) if prefetch else None
 
     def frame(i):
         t = max(float(ft[i]), t_start)       # frames before the first odometry: at the start pose
         if i % every == 0:
-            _run_method(method, loc, run, i, t, rec)
+            _run_method(method, loc, run, i, t, rec, frames)
         rec.pose(i, loc, t)
         bar.update(1)
 
-    for k in range(1, len(odo_t)):
-        loc.add_odometry(float(odo_t[k]), incs[k - 1])
-        while fi < n and ft[fi] <= odo_t[k]:
+    try:
+        for k in range(1, len(odo_t)):
+            loc.add_odometry(float(odo_t[k]), incs[k - 1])
+            while fi < n and ft[fi] <= odo_t[k]:
+                frame(fi)
+                fi += 1
+            loc.check_failure(float(odo_t[k]))
+        while fi < n:                             # frames after the last odometry sample
             frame(fi)
             fi += 1
-        loc.check_failure(float(odo_t[k]))
-    while fi < n:                             # frames after the last odometry sample
-        frame(fi)
-        fi += 1
-    bar.close()
+    finally:
+        if frames is not None:
+            frames.close()
+        bar.close()
 
 
 def _realtime(method, loc, run, rec, speed, progress):
@@ -246,7 +306,7 @@ def _realtime(method, loc, run, rec, speed, progress):
                 method.prefetch(prior.next_place)
                 img = run.image(i, gray=not method.color)
                 t0 = time.perf_counter()
-                obs = method.detect(img, prior.place, prior)
+                obs = method.detect(method.prepare(img), prior.place, prior)
                 solve_box.put((i, t, prior, obs, 1e3 * (time.perf_counter() - t0)))
         except BaseException as exc:  # surfaced on the main thread
             errors.append(exc)
@@ -342,7 +402,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
         if realtime:
             extra = _realtime(method, loc, run, rec, float(speed), progress)
         else:
-            _deterministic(method, loc, run, rec, every, progress)
+            _deterministic(method, loc, run, rec, every, progress, bool(cfg["prefetch"]))
     finally:
         if own:
             method.close()
@@ -382,8 +442,8 @@ def reference_path(store: MapStore) -> ReferencePath:
 def map_relative_truth(store: MapStore, truth_poses: np.ndarray) -> np.ndarray | None:
     """Truth expressed in the map's frame, or None when the map does not record its places' truth.
 
-    The map's frame is realised by the reference run's INS, whose error (metres, for a GPS-aided INS)
-    every place carries.  A simulated map records each place's exact pose (``extra["T_truth_place"]``),
+    The map's frame is realised by the training runs' INS (combined per place by
+    :mod:`mapping.georef`), whose error (metres, for a GPS-aided INS) every place carries.  A simulated map records each place's exact pose (``extra["T_truth_place"]``),
     so a true pose can be carried into the map frame through the nearest place:
     ``T_world_place · T_truth_place⁻¹ · T_truth``.  Errors against that are the localiser's own;
     errors against the raw truth add the map's georeferencing error, which no localiser can remove.

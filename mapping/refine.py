@@ -10,7 +10,10 @@ This module turns those detections into a motion-consistent 3D landmark, or reje
    depth with the lowest total Huber cost;
 3. **Levenberg-Marquardt** on the full 3D point with a Huber cost (eqs. 6-9), measurement covariance
    ``R = a / (lambda s) Q`` (eq. 5), implemented here as vectorised IRLS so a whole place (hundreds of
-   classifiers) is one batched 3-parameter problem;
+   classifiers) is one batched 3-parameter problem; then, when the detector's searched scales are known,
+   a **scale gate**: firings at a scale the landmark's depth contradicts (the patch grew or shrank out of
+   the searched pyramid levels, so the detector matched something else) are dropped and 2-3 repeated --
+   not in the paper; without it, near landmarks came out far (their firings lag behind the growing patch);
 4. **checks** -- reject landmarks behind the camera, at the depth bound or with a poor fit, and keep the
    point in the place frame with its covariance ``(H^T W R^-1 H)^-1``.
 
@@ -69,9 +72,28 @@ default_config = {
     # Fit checks over the detections the final estimate explains (Mahalanobis residual <= fit_outlier_mahal).
     "fit_outlier_mahal": 6.0,
     "fit_max_rms_mahal": 3.0,
-    "fit_max_rms_frac": 0.02,  # RMS pixel error as a fraction of the image diagonal; None disables
+    # RMS pixel error as a fraction of the image diagonal (6 px at 640x480); None disables.  A large patch
+    # that straddles a depth discontinuity deforms as the vehicle moves -- its parts move with different
+    # parallax -- so no single point explains its firings to within a few pixels, and whatever depth it
+    # gets is not the depth of anything in it: on the simulator (demo world) such landmarks (RMS 6-16 px)
+    # had median depth errors 2-3x those of the rest.
+    "fit_max_rms_frac": 0.0075,
     # Multiply the covariance by the a-posteriori variance factor (chi^2 / dof) when R is poorly known.
     "scale_covariance": False,
+    # Scale gating (only with Detections.scale_range).  A landmark at depth z_a in the anchor camera appears
+    # z_a / z_j times larger in window frame j, so the detector can only have found it at scale
+    # s_j = s_a z_j / z_a (s_a: the anchor firing's scale).  Where s_j lies outside the searched scales (by
+    # more than ``scale_range_margin`` octaves) the patch could not be matched, and where the firing's own
+    # scale differs from s_j by more than ``scale_tolerance`` octaves it matched something else -- in both
+    # cases, for large patches, typically a part of the grown patch that lags towards the focus of
+    # expansion and drags the depth far.  The depth sweep scores each sampled depth without the firings it
+    # rules out, plus a Huber cost on every firing's scale residual (sigma = scale_tolerance / 2; else a
+    # depth at which the patch hardly grows would explain the lagging firings for free); LM then runs on
+    # the firings the estimate leaves, re-censoring and re-running at most ``scale_iterations`` times.
+    # Censored firings are neither used nor counted against the landmark by the fit check.
+    "scale_tolerance": 0.25,       # octaves (one pyramid level at 4 scales per octave)
+    "scale_range_margin": 0.125,   # octaves (half a level: the detector still matches that far off)
+    "scale_iterations": 3,         # 0 disables the gating
     # Landmarks per vectorised batch (bounds memory of the sweep: chunk x depths x frames x 3 floats).
     "chunk": 64,
 }
@@ -109,12 +131,18 @@ class Detections:
         Detection probability ``lambda`` in (0, 1].
     area : (N,) or (N, F) array
         Patch area ``a`` (see ``default_config["area_ref"]`` for the units).
+    scale_range : (N, 2) array, optional
+        Smallest and largest scale the detector searched for each classifier (e.g. its nominal pyramid
+        level +- ``scale_search``).  Given, ``scale`` is taken to be the real pyramid scale of each firing
+        and the refinement gates detections by scale (see ``default_config["scale_tolerance"]``); None
+        (default) leaves scales to eq. 5 only.
     """
 
     uv: np.ndarray
     scale: np.ndarray
     prob: np.ndarray
     area: np.ndarray
+    scale_range: np.ndarray | None = None
 
     def __post_init__(self):
         uv = np.asarray(self.uv, dtype=float)
@@ -140,6 +168,14 @@ class Detections:
         self.scale = as_nf("scale", self.scale)
         self.prob = as_nf("prob", self.prob)
         self.area = as_nf("area", self.area)
+        if self.scale_range is not None:
+            r = np.asarray(self.scale_range, dtype=float)
+            if r.shape == (2,):
+                r = np.tile(r, (N, 1))
+            if r.shape != (N, 2) or not np.all(r[:, 1] >= r[:, 0]) or not np.all(r > 0):
+                raise ValueError(f"scale_range must be (N, 2) = ({N}, 2) positive [min, max] scales, got "
+                                 f"{np.shape(self.scale_range)}")
+            self.scale_range = r
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -164,6 +200,7 @@ class RefineResult:
     rms_px, rms_mahal : (N,) RMS pixel / Mahalanobis residual over ``fit_inliers``.
     iterations : (N,) LM iterations; converged : (N,) bool.
     anchor : (N,) window frame whose detection anchored the depth sweep (-1 if none).
+    censored : (N, F) bool, detections dropped by the scale gate (all False without it).
     """
 
     points: np.ndarray
@@ -180,6 +217,7 @@ class RefineResult:
     converged: np.ndarray
     anchor: np.ndarray
     config: dict = field(default_factory=dict, repr=False)
+    censored: np.ndarray | None = None
 
     @property
     def kept(self) -> np.ndarray:
@@ -333,7 +371,21 @@ def _mahalanobis(e, k, Qinv):
     return np.sqrt(np.maximum(k * q, 0.0))
 
 
-def depth_sweep(origin, direction, z_obs, k, mask, T_cam_place, camera, Qinv, alpha, depths):
+def _scale_check(expected, log_s, lo, hi, tolerance, margin):
+    """Scale gate of firings (all arguments broadcast; log2 scales / octaves).
+
+    Returns ``usable`` -- the firing can be the landmark: the scale its depth predicts (``expected``) lies
+    within the searched range ``[lo, hi]`` (+- ``margin``) and the firing's own scale ``log_s`` agrees with
+    it within ``tolerance`` -- and ``residual``: ``log_s`` minus the predicted scale clamped to the searched
+    range (what the detector reports at best when the patch grew or shrank beyond it).
+    """
+    with np.errstate(invalid="ignore"):
+        inside = (expected >= lo - margin) & (expected <= hi + margin)
+        residual = log_s - np.clip(expected, lo, hi)
+        return inside & ~(np.abs(residual) > tolerance), residual
+
+
+def depth_sweep(origin, direction, z_obs, k, mask, T_cam_place, camera, Qinv, alpha, depths, scale=None):
     """Total Huber reprojection cost of points at sampled depths along anchor rays.
 
     Parameters
@@ -349,6 +401,13 @@ def depth_sweep(origin, direction, z_obs, k, mask, T_cam_place, camera, Qinv, al
     T_cam_place : (F, 4, 4), camera : ideal Camera, Qinv : (2, 2), alpha : Huber threshold.
     depths : (K,) array
         Sampled anchor-camera depths.
+    scale : dict, optional
+        Scale gate (see ``default_config["scale_tolerance"]``): ``log_s`` (n, F) log2 firing scales,
+        ``log_sa`` (n,) log2 scale of the anchor firing, ``lo``, ``hi`` (n,) log2 searched scales,
+        ``tolerance``, ``margin``, ``sigma`` (octaves).  At each depth, firings that depth rules out leave
+        the reprojection cost, and every firing adds ``huber(residual / sigma)`` of its scale residual
+        (:func:`_scale_check`) -- without it a depth at which the patch hardly grows would explain
+        firings that lag behind a growing patch for free.
 
     Returns
     -------
@@ -356,13 +415,25 @@ def depth_sweep(origin, direction, z_obs, k, mask, T_cam_place, camera, Qinv, al
         Depth of minimum cost (the first one on ties).
     cost : (n, K) float
     """
+    depths = np.asarray(depths, float)
     P = ray_points(origin, direction, depths)  # (n, K, 3)
     uv, zc = reproject(T_cam_place, P, camera)  # (n, K, F, 2), (n, K, F)
     e = z_obs[:, None] - uv
     c = _mahalanobis(e, k[:, None], Qinv)
     c = np.where((zc > 0) & np.isfinite(c), c, _C_BEHIND)
-    cost = np.where(mask[:, None], huber(c, alpha), 0.0).sum(axis=2)
-    return np.asarray(depths, float)[np.argmin(cost, axis=1)], cost
+    use = np.broadcast_to(mask[:, None], c.shape)
+    extra = 0.0
+    if scale is not None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            expected = scale["log_sa"][:, None, None] + np.log2(zc / depths[None, :, None])
+        usable, res = _scale_check(expected, scale["log_s"][:, None, :], scale["lo"][:, None, None],
+                                   scale["hi"][:, None, None], scale["tolerance"], scale["margin"])
+        # behind the camera is not censored: the reprojection cost charges it as the hard outlier it is
+        use = use & (usable | ~(zc > 0))
+        extra = np.where(mask[:, None] & np.isfinite(res), huber(np.nan_to_num(res) / scale["sigma"], alpha),
+                         0.0).sum(axis=2)
+    cost = np.where(use, huber(c, alpha), 0.0).sum(axis=2) + extra
+    return depths[np.argmin(cost, axis=1)], cost
 
 
 def _robust_system(p, z_obs, k, mask, T_cam_place, camera, Qinv, alpha):
@@ -542,18 +613,58 @@ def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_v
     depths = depths[depths > 0]
     todo = np.flatnonzero(ok)
     chunk = max(1, int(cfg["chunk"]))
-    for start in range(0, todo.size, chunk):
-        idx = todo[start:start + chunk]
-        an = anchor[idx]
-        o, d = anchor_rays(T_cp, z_obs[idx, an], an, icam)
-        # 2. depth sweep
-        best, _ = depth_sweep(o, d, z_obs[idx], k[idx], inliers[idx], T_cp, icam, Qinv, alpha, depths)
-        sweep_depth[idx] = best
-        # 3. LM with Huber weights on the full 3D point
-        p0 = o + best[:, None] * d
-        p, A, _, it, conv = lm_huber(p0, z_obs[idx], k[idx], inliers[idx], T_cp, icam, Qinv, alpha,
-                                     cfg["lm_max_iterations"], cfg["lm_tolerance"])
-        points[idx], infos[idx], iterations[idx], converged[idx] = p, A, it, conv
+
+    # 3b. scale gate (with the searched scales): firings the landmark's depth rules out are censored
+    censored = np.zeros((N, F), bool)
+    temporal_inliers = inliers.copy()
+    gate = None
+    if detections.scale_range is not None and int(cfg["scale_iterations"]) > 0:
+        with np.errstate(divide="ignore"):
+            log_s = np.where(valid, np.log2(np.where(valid, s, 1.0)), np.nan)
+        gate = {"log_s": log_s, "lo": np.log2(detections.scale_range[:, 0]),
+                "hi": np.log2(detections.scale_range[:, 1]), "tolerance": float(cfg["scale_tolerance"]),
+                "margin": float(cfg["scale_range_margin"]), "sigma": 0.5 * float(cfg["scale_tolerance"])}
+
+    def censor(idx, p):
+        """Firings of landmarks idx at points p (n, 3) their depth rules out (never the anchor)."""
+        Pc = np.einsum("fij,nj->nfi", T_cp[:, :3, :3], np.nan_to_num(p)) + T_cp[:, :3, 3]
+        z = Pc[..., 2]
+        rows = np.arange(len(idx))
+        za = z[rows, anchor[idx]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            expected = gate["log_s"][idx, anchor[idx]][:, None] + np.log2(z / za[:, None])
+        usable, _ = _scale_check(expected, gate["log_s"][idx], gate["lo"][idx, None], gate["hi"][idx, None],
+                                 gate["tolerance"], gate["margin"])
+        out = valid[idx] & ~usable & (z > 0)  # behind the camera: an outlier, not a censored firing
+        out[rows, anchor[idx]] = False
+        out[~(np.isfinite(p).all(axis=1) & (za > 0))] = False
+        return out
+
+    def estimate(which):
+        for start in range(0, which.size, chunk):
+            idx = which[start:start + chunk]
+            an = anchor[idx]
+            o, d = anchor_rays(T_cp, z_obs[idx, an], an, icam)
+            # 2. depth sweep
+            g = None if gate is None else {**gate, "log_s": gate["log_s"][idx], "log_sa": gate["log_s"][idx, an],
+                                           "lo": gate["lo"][idx], "hi": gate["hi"][idx]}
+            best, _ = depth_sweep(o, d, z_obs[idx], k[idx], temporal_inliers[idx], T_cp, icam, Qinv, alpha, depths,
+                                  scale=g)
+            sweep_depth[idx] = best
+            # 3. LM with Huber weights on the full 3D point (on the firings the gate leaves)
+            p = o + best[:, None] * d
+            for rep in range(max(1, int(cfg["scale_iterations"]) if gate is not None else 1)):
+                if gate is not None:
+                    cens = censor(idx, p)
+                    if rep and np.array_equal(cens, censored[idx]):
+                        break
+                    censored[idx] = cens
+                    inliers[idx] = temporal_inliers[idx] & ~cens
+                p, A, _c, it, conv = lm_huber(p, z_obs[idx], k[idx], inliers[idx], T_cp, icam, Qinv, alpha,
+                                              cfg["lm_max_iterations"], cfg["lm_tolerance"])
+                points[idx], infos[idx], iterations[idx], converged[idx] = p, A, it, conv
+
+    estimate(todo)
 
     # 4. checks, on the final estimate
     reason = np.full(N, "", dtype="<U8")
@@ -597,7 +708,7 @@ def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_v
                 bad_depth |= (depth[todo] + cfg["depth_bound_sigmas"] * np.sqrt(np.maximum(var_depth, 0))
                               >= cfg["depth_bound"])
         # fit: too few explained detections, or residuals too large
-        n_valid = valid[todo].sum(axis=1)
+        n_valid = (valid[todo] & ~censored[todo]).sum(axis=1)
         need = np.maximum(int(cfg["min_detections"]), np.ceil(cfg["temporal_min_inlier_ratio"] * n_valid))
         bad_fit = (nf < need) | ~(rms_mahal[todo] <= cfg["fit_max_rms_mahal"])
         if cfg["fit_max_rms_frac"] is not None:
@@ -610,7 +721,7 @@ def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_v
     return RefineResult(points=points, covariances=covs, depth=depth, sweep_depth=sweep_depth, reason=reason,
                         inliers=inliers, fit_inliers=fit_inliers, inlier_ratio=ratio, rms_px=rms_px,
                         rms_mahal=rms_mahal, iterations=iterations, converged=converged, anchor=anchor,
-                        config=cfg)
+                        config=cfg, censored=censored)
 
 
 # --------------------------------------------------------------------------------------------------------

@@ -7,11 +7,11 @@ number of signatures (``places.png``).
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from surveys.errors import DataError
 from surveys.geometry import invert, transform
 from signatures.bank import Bank
 from mapping.store import MapStore
@@ -20,13 +20,22 @@ __all__ = ["place_figure", "heatmap", "show_map", "run_from_args"]
 
 
 def _boxes_and_depths(store: MapStore, data) -> tuple[np.ndarray, np.ndarray]:
-    """Signature boxes (x0, y0, x1, y1) in full-resolution pixels and landmark depths (camera z)."""
+    """Signature boxes (x0, y0, x1, y1, pixel edges) in full-resolution pixels and landmark depths (camera z).
+
+    A box is the classifier's candidate shape centred on its firing in the keyframe (where mining placed
+    it if it did not fire there).
+    """
+    if not data.bank_arrays:
+        return np.zeros((0, 4)), np.zeros(0)
     bank = Bank.from_arrays(data.bank_arrays)
+    nominal = np.array([c.nominal_xy for c in bank.classifiers], dtype=float).reshape(-1, 2)
     centres = np.asarray(data.meta.get("detections_at_reference", []), dtype=float).reshape(-1, 2)
-    if len(centres) != len(bank):  # fall back to where mining placed them
-        centres = np.array([c.nominal_xy for c in bank.classifiers], dtype=float).reshape(-1, 2)
-    size = np.array([[c.width, c.height] for c in bank.classifiers], dtype=float).reshape(-1, 2)
-    boxes = np.concatenate([centres - size / 2, centres + size / 2], axis=1)
+    if len(centres) != len(bank):
+        centres = nominal
+    centres = np.where(np.isfinite(centres), centres, nominal)
+    size = np.array([c.box[2:4] for c in bank.classifiers], dtype=float).reshape(-1, 2)
+    # detections are window centres in pixel-centre coordinates; boxes are drawn on pixel edges
+    boxes = np.concatenate([centres + 0.5 - size / 2, centres + 0.5 + size / 2], axis=1)
     p_cam = transform(invert(store.T_vehicle_camera), data.landmarks) if len(data.landmarks) else np.zeros((0, 3))
     return boxes, p_cam[:, 2]
 
@@ -91,11 +100,12 @@ def overview(store: MapStore, path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    xy = np.array([p.position[:2] for p in store.places])
-    n = np.array([p.signatures for p in store.places])
+    metas = list(store.places.values())
+    xy = np.array([p.position[:2] for p in metas]).reshape(-1, 2)
+    n = np.array([p.signatures for p in metas])
     fig, ax = plt.subplots(figsize=(7, 6))
     sc = ax.scatter(xy[:, 0], xy[:, 1], c=n, cmap="viridis", s=40)
-    for p in store.places:
+    for p in metas:
         ax.annotate(str(p.index), p.position[:2], fontsize=6, xytext=(3, 3), textcoords="offset points")
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
@@ -109,15 +119,24 @@ def overview(store: MapStore, path) -> Path:
 
 
 def show_map(map_dir, out, place: int | None = None, progress: bool = True) -> list[Path]:
+    """Write the map's figures into ``out``; returns their paths.
+
+    Parameters
+    ----------
+    map_dir : a map folder (``maps/NAME``).
+    out : figure folder (created).
+    place : only this place's keyframe figure (the heat map then covers that place alone).
+    """
     from tqdm import tqdm
 
     store = MapStore.open(map_dir)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    indices = [p.index for p in store.places]
+    indices = sorted(store.places)
     if place is not None:
-        if place not in indices:
-            raise ValueError(f"{map_dir}: no place {place} (places 0..{len(indices) - 1})")
+        if place not in store.places:
+            raise DataError(store.manifest_path, f"the map has no place {place} (places: "
+                                                 f"{indices[0] if indices else '-'}..{indices[-1] if indices else '-'})")
         indices = [place]
     written = [place_figure(store, i, out / f"place_{i:04d}.png")
                for i in tqdm(indices, desc="map show", disable=not progress)]

@@ -23,7 +23,9 @@ Guarantees:
 
 Float arrays are stored in the smallest float type whose rounding error stays below a tolerance, measured
 per array (and, for the bank, optionally on the detection scores themselves), and restored to their
-original dtype on load.
+original dtype on load; large float16 arrays (the classifier filters) keep only the mantissa bits the
+tolerance needs and are written as byte planes, and zip entries are LZMA-compressed (format version 2;
+version 1 files, deflated plain float16, still load).
 
 The store only knows the bank as a ``dict[str, np.ndarray]`` (``Bank.to_arrays()`` /
 ``Bank.from_arrays()``), so it does not depend on how signatures are represented.
@@ -54,11 +56,18 @@ __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "PlaceData", "PlaceMeta", "MapWriter
            "encode_keyframe", "decode_keyframe", "place_file_name", "atomic_write_bytes", "software_version"]
 
 FORMAT_NAME = "scenesig-map"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Versions this code reads (1: float16 arrays stored as such; 2: as byte planes, fewer mantissa bits).
+READABLE_VERSIONS = (1, 2)
+#: float16 arrays keep at least this many of their 10 mantissa bits.
+FLOAT16_MIN_MANTISSA_BITS = 4
 MANIFEST = "manifest.json"
 JOURNAL = "journal.jsonl"
 PLACES_DIR = "places"
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # the earliest date zip can store; fixed so bytes repeat
+# LZMA zip entries (np.load reads them through zipfile): 4.5 % smaller places than deflate on the demo
+# map (252.8 -> 241.4 kB), lossless; loading a place takes ~20 ms instead of ~5 ms, once per place.
+_ZIP_COMPRESSION = zipfile.ZIP_LZMA
 _BANK_PREFIX = "bank/"
 _POINTS_PREFIX = "points/"
 
@@ -248,10 +257,10 @@ def _deterministic_npz(entries: dict) -> bytes:
     with zipfile.ZipFile(out, "w") as zf:
         for name in sorted(entries):
             info = zipfile.ZipInfo(name + ".npy", date_time=_ZIP_DATE)
-            info.compress_type = zipfile.ZIP_DEFLATED
+            info.compress_type = _ZIP_COMPRESSION
             info.create_system = 3
             info.external_attr = 0o644 << 16
-            zf.writestr(info, _npy_bytes(entries[name]), compress_type=zipfile.ZIP_DEFLATED, compresslevel=6)
+            zf.writestr(info, _npy_bytes(entries[name]), compress_type=_ZIP_COMPRESSION)
     return out.getvalue()
 
 
@@ -260,23 +269,64 @@ def _json_bytes(obj) -> np.ndarray:
                          dtype=np.uint8)
 
 
-def encode_place(index: int, data: PlaceData, float16_tol: float = 1e-3,
+def _round_float16(a: np.ndarray, tol: float, min_bits: int = FLOAT16_MIN_MANTISSA_BITS):
+    """``a`` (float16-able) rounded to the fewest float16 mantissa bits keeping the row error within ``tol``.
+
+    Returns ``(bits, values)``: the mantissa bits kept (10 = plain float16) and the rounded float16 array.
+    Rounding is to nearest (a carry into the exponent is the correct rounding); zeroed low bits cost
+    almost nothing once the bytes are split into planes and compressed.
+    """
+    a64 = np.asarray(a, dtype=np.float64)
+    h = np.asarray(a).astype(np.float16)
+    u = h.view(np.uint16).astype(np.uint32)
+    bits, best = 10, h
+    for b in range(9, int(min_bits) - 1, -1):
+        drop = 10 - b
+        r = (((u + (1 << (drop - 1))) >> drop) << drop).astype(np.uint16).view(np.float16)
+        if not np.isfinite(r).all() or _row_rel_error(a64, r.astype(np.float64)) > tol:
+            break
+        bits, best = b, r
+    return bits, best
+
+
+def _to_planes(h: np.ndarray) -> np.ndarray:
+    """float16 array -> (2, n) uint8: low bytes, then high bytes (sign, exponent: very compressible)."""
+    u = np.ascontiguousarray(h).reshape(-1).view(np.uint16)
+    return np.stack([(u & 0xFF).astype(np.uint8), (u >> 8).astype(np.uint8)])
+
+
+def _from_planes(planes: np.ndarray, shape) -> np.ndarray:
+    p = np.asarray(planes, dtype=np.uint16).reshape(2, -1)
+    return (p[0] | (p[1] << 8)).astype(np.uint16).view(np.float16).reshape(shape)
+
+
+def encode_place(index: int, data: PlaceData, float16_tol: float = 4e-3,
                  score_fn: Callable[[dict], np.ndarray] | None = None, score_tol: float = 1e-3,
                  float16_min_size: int = 4096) -> bytes:
     """Serialise one place to deterministic npz bytes (see :class:`MapWriter` for the dtype rule)."""
     bank = {k: np.asarray(v) for k, v in data.bank_arrays.items()}
     stored = {k: v.astype(_smallest_float(v, float16_tol, min_size=float16_min_size), copy=False)
               for k, v in bank.items()}
+    mantissa = {}
+    for k, v in stored.items():
+        if v.dtype == np.float16 and bank[k].dtype != np.float16:
+            mantissa[k], stored[k] = _round_float16(bank[k], float16_tol)
     if score_fn is not None and any(stored[k].dtype != bank[k].dtype for k in bank):
         ref = np.asarray(score_fn(bank), dtype=float)
         low = {k: stored[k].astype(bank[k].dtype) for k in bank}
         if not np.max(np.abs(np.asarray(score_fn(low), dtype=float) - ref), initial=0.0) <= score_tol:
             # the measured scores moved too much: no float16, at most float32 (or the original type)
+            mantissa = {}
             stored = {k: v.astype(_smallest_float(v, float16_tol, min_itemsize=4, min_size=float16_min_size),
                                   copy=False) for k, v in bank.items()}
             low = {k: stored[k].astype(bank[k].dtype) for k in bank}
             if not np.max(np.abs(np.asarray(score_fn(low), dtype=float) - ref), initial=0.0) <= score_tol:
                 stored = bank
+    # float16 arrays go to disk as byte planes (see _to_planes): the compressor then sees the repetitive
+    # sign/exponent bytes apart from the mantissa bytes -- about 10 % smaller, bit-exact
+    planes = {k: {"shape": list(v.shape), "mantissa_bits": int(mantissa.get(k, 10))}
+              for k, v in stored.items() if v.dtype == np.float16 and v.size >= float16_min_size}
+    stored = {k: (_to_planes(v) if k in planes else v) for k, v in stored.items()}
     lm = data.landmarks
     cov = data.covariances
     lm_s = lm.astype(_smallest_float(lm, GEOMETRY_TOL))
@@ -297,6 +347,8 @@ def encode_place(index: int, data: PlaceData, float16_tol: float = 1e-3,
             # original dtypes, restored on load
             "dtypes": {**{_BANK_PREFIX + k: str(v.dtype) for k, v in bank.items()},
                        "landmarks": str(lm.dtype), "covariances": str(cov.dtype)},
+            # arrays stored as float16 byte planes: their shape (and, for the record, mantissa bits kept)
+            "float16_planes": {_BANK_PREFIX + k: v for k, v in planes.items()},
         }),
     })
     return _deterministic_npz(entries)
@@ -317,12 +369,17 @@ def decode_place(raw: bytes, path: Path, index: int | None = None) -> PlaceData:
         meta = json.loads(arrays.pop("meta").tobytes())
     except (ValueError, UnicodeDecodeError) as exc:
         raise DataError(path, f"bad JSON in the place file's format/meta entry: {exc}") from None
-    if fmt.get("format") != FORMAT_NAME or fmt.get("format_version") != FORMAT_VERSION:
+    if fmt.get("format") != FORMAT_NAME or fmt.get("format_version") not in READABLE_VERSIONS:
         raise DataError(path, f"place file is {fmt.get('format')!r} version {fmt.get('format_version')!r}; "
-                              f"this scenesig reads {FORMAT_NAME!r} version {FORMAT_VERSION}")
+                              f"this scenesig reads {FORMAT_NAME!r} versions {list(READABLE_VERSIONS)}")
     if index is not None and fmt.get("place") != index:
         raise DataError(path, f"place file holds place {fmt.get('place')}, expected place {index}")
     dtypes = fmt.get("dtypes", {})
+    for k, enc in fmt.get("float16_planes", {}).items():
+        try:
+            arrays[k] = _from_planes(arrays[k], enc["shape"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(path, f"bad float16 planes for {k!r}: {exc}") from None
     restore = {k: (v.astype(dtypes[k]) if k in dtypes and str(v.dtype) != dtypes[k] else v) for k, v in arrays.items()}
     kf = restore.pop("keyframe").tobytes()
     try:
@@ -404,8 +461,12 @@ class MapWriter:
     float16_tol : float
         Bank float arrays of at least ``float16_min_size`` elements are stored as float16 when every row's
         relative L2 rounding error is below this (rows = first axis; a 1-D array is one row; for
-        ``score = w . h + b`` it bounds the score change relative to ``||w|| ||h||``), else float32 when
-        that is below it, else unchanged.  They are restored to their own dtype on load.
+        ``score = w . h + b`` it bounds the score change relative to ``||w|| ||h||``), with as few
+        mantissa bits (at least :data:`FLOAT16_MIN_MANTISSA_BITS`) as keep that error below it; else
+        float32 when that is below it, else unchanged.  They are restored to their own dtype on load.
+        The default, 4e-3, keeps 6-7 of float16's 10 mantissa bits for scene-signature filters: on the
+        demo world's banks (992 detections over real frames) no detection moved and no probability
+        changed by more than 0.003, and the filters take a quarter less space than plain float16.
     float16_min_size : int
         Smaller arrays (boxes, biases, scalars: a few kB at most) are stored exactly.
     score_fn : callable, optional
@@ -418,7 +479,7 @@ class MapWriter:
         Discard an existing map or partial build in ``root`` with different settings instead of failing.
     """
 
-    def __init__(self, root, camera: Camera, T_vehicle_camera, params: dict, *, float16_tol: float = 1e-3,
+    def __init__(self, root, camera: Camera, T_vehicle_camera, params: dict, *, float16_tol: float = 4e-3,
                  score_fn: Callable[[dict], np.ndarray] | None = None, score_tol: float = 1e-3,
                  float16_min_size: int = 4096, overwrite: bool = False):
         self.root = Path(root)
@@ -774,7 +835,7 @@ def _validate_manifest(doc, path: Path) -> None:
         raise DataError(path, f"not a scenesig map manifest (format is {doc.get('format')!r}, expected "
                               f"{FORMAT_NAME!r})")
     version = doc.get("format_version")
-    if version != FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:
         raise DataError(path, f"map format version {version!r} is not supported: this scenesig "
                               f"({software_version()}) reads version {FORMAT_VERSION}; rebuild the map "
                               f"(built by scenesig {doc.get('software', '?')})")

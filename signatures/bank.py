@@ -14,16 +14,18 @@ multiply: the level's features are unrolled along x only (each row of the unroll
 group's filters, and each filter's score map is the sum of its ``fh`` row responses along a
 diagonal (a strided view, no copy).  The multiply is the whole cost (BLAS, multi-threaded); the
 unrolled matrix is ``fw`` times the level size, not ``fw * fh`` times as a full im2col would be.
-Search windows restrict the rows and columns that are unrolled.
+Search windows restrict the rows and columns that are unrolled, and (:meth:`Bank.pyramid`) the cells
+of each level whose features are computed at all.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
-from signatures.hog import level_scale
+from signatures.hog import level_scale, level_size
 
 __all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce"]
 
@@ -288,9 +290,45 @@ class Bank:
             ks.update(range(max(0, c.level - scale_search), c.level + scale_search + 1))
         return sorted(ks)
 
-    def pyramid(self, image: np.ndarray, scale_search: int = 1) -> HogPyramid:
-        """The HOG pyramid of ``image`` with exactly the levels this bank searches."""
-        return build_pyramid(image, self.hog, levels=self.levels(scale_search))
+    def pyramid(self, image: np.ndarray, scale_search: int = 1, levels=None, windows=None) -> HogPyramid:
+        """The HOG pyramid of ``image`` with exactly what this bank searches.
+
+        Parameters
+        ----------
+        image : gray or BGR image.
+        scale_search : levels nominal +- this (when ``levels`` is not given).
+        levels : per-classifier levels to search (as in :meth:`detect`).
+        windows : per-classifier search windows (as in :meth:`detect`).  With windows only the
+            cells the windows' detections can touch are computed at each level (and levels no
+            window reaches are skipped); those cells are exactly the whole level's.
+        """
+        n = len(self)
+        if levels is None:
+            levels = [range(max(0, c.level - scale_search), c.level + scale_search + 1) for c in self.classifiers]
+        elif len(levels) != n:
+            raise ValueError(f"levels must list the levels of each of the {n} classifiers")
+        need = sorted(set().union(*levels)) if n else []
+        if windows is None:
+            return build_pyramid(image, self.hog, levels=need)
+        windows = np.asarray(windows, dtype=float)
+        if windows.shape != (n, 4):
+            raise ValueError(f"windows must have shape ({n}, 4), got {windows.shape}")
+        h, w = np.asarray(image).shape[:2]
+        spo, cell = int(self.hog["scales_per_octave"]), int(self.hog["cell"])
+        boxes: dict[int, list] = {}
+        for i, c in enumerate(self.classifiers):
+            fh, fw = c.filter_shape
+            for k in levels[i]:
+                lw, lh = level_size((w, h), k, spo)
+                if lw < cell or lh < cell:
+                    continue
+                r0, r1, c0, c1 = _cell_ranges((lh // cell, lw // cell), (lw / w, lh / h), cell, fh, fw, windows[i])
+                if r1 < r0 or c1 < c0:
+                    continue
+                b = boxes.setdefault(k, [r0, r1 + fh, c0, c1 + fw])
+                b[0], b[1] = min(b[0], r0), max(b[1], r1 + fh)
+                b[2], b[3] = min(b[2], c0), max(b[3], c1 + fw)
+        return build_pyramid(image, self.hog, levels=sorted(boxes), regions={k: tuple(b) for k, b in boxes.items()})
 
     def detect(self, image, windows=None, top_n: int = 1, config: dict | None = None,
                levels=None) -> Detections:
@@ -323,7 +361,7 @@ class Bank:
                 raise ValueError("pyramid was built with different HOG parameters than the bank "
                                  f"({pyr.config} vs {self.hog})")
         else:
-            pyr = self.pyramid(image, int(cfg["scale_search"]))
+            pyr = self.pyramid(image, int(cfg["scale_search"]), levels=levels, windows=windows)
         if top_n < 1:
             raise ValueError(f"top_n must be >= 1, got {top_n}")
         if windows is not None:
@@ -351,16 +389,20 @@ def _compact(a: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------- scoring
 
 
-def _cell_ranges(pyr: HogPyramid, k: int, fh: int, fw: int, window) -> tuple[int, int, int, int]:
+def _cell_ranges(shape, scale_xy, cell: int, fh: int, fw: int, window) -> tuple[int, int, int, int]:
     """Top-left cell ranges [r0, r1] x [c0, c1] (inclusive) of windows whose centre lies in
-    ``window`` at level k; empty ranges have r1 < r0."""
-    hc, wc = pyr.levels[k].shape[:2]
+    ``window`` at a level of ``shape`` (hc, wc) cells and scale ``scale_xy`` (sx, sy); empty ranges
+    have r1 < r0.  (The arithmetic of :meth:`HogPyramid.cell_at`.)"""
+    hc, wc = shape
     r0, r1, c0, c1 = 0, hc - fh, 0, wc - fw
-    if window is not None and not np.any(np.isnan(window)):
-        ra, ca = pyr.cell_at(k, window[0], window[1], fh, fw)
-        rb, cb = pyr.cell_at(k, window[2], window[3], fh, fw)
-        r0, r1 = max(r0, int(np.ceil(ra - 1e-9))), min(r1, int(np.floor(rb + 1e-9)))
-        c0, c1 = max(c0, int(np.ceil(ca - 1e-9))), min(c1, int(np.floor(cb + 1e-9)))
+    if window is not None:
+        x0, y0, x1, y1 = (float(v) for v in window)     # plain floats: this runs per classifier and level
+        if not (math.isnan(x0) or math.isnan(y0) or math.isnan(x1) or math.isnan(y1)):
+            sx, sy = scale_xy
+            ra, ca = (y0 + 0.5) * sy / cell - 0.5 * fh, (x0 + 0.5) * sx / cell - 0.5 * fw
+            rb, cb = (y1 + 0.5) * sy / cell - 0.5 * fh, (x1 + 0.5) * sx / cell - 0.5 * fw
+            r0, r1 = max(r0, math.ceil(ra - 1e-9)), min(r1, math.floor(rb + 1e-9))
+            c0, c1 = max(c0, math.ceil(ca - 1e-9)), min(c1, math.floor(cb + 1e-9))
     return r0, r1, c0, c1
 
 
@@ -369,14 +411,22 @@ def _score_all(classifiers, pyr: HogPyramid, levels, windows):
     n = len(classifiers)
     out = [[] for _ in range(n)]
     jobs: dict[tuple[int, int], list] = {}
+    cell = pyr.cell
     for i, c in enumerate(classifiers):
         fh, fw = c.filter_shape
         for k in levels[i]:
             if k not in pyr.levels:
                 continue
-            r0, r1, c0, c1 = _cell_ranges(pyr, k, fh, fw, None if windows is None else windows[i])
+            r0, r1, c0, c1 = _cell_ranges(pyr.levels[k].shape[:2], pyr.scale_xy(k), cell, fh, fw,
+                                          None if windows is None else windows[i])
             if r1 < r0 or c1 < c0:
                 continue
+            if k in pyr.regions:
+                v0, v1, u0, u1 = pyr.regions[k]
+                if r0 < v0 or r1 + fh > v1 or c0 < u0 or c1 + fw > u1:
+                    raise ValueError(f"pyramid level {k} holds features only in cells {pyr.regions[k]}, but "
+                                     f"classifier {i} needs rows {r0}..{r1 + fh - 1}, columns {c0}..{c1 + fw - 1} "
+                                     "(build it with Bank.pyramid and the same windows and levels)")
             jobs.setdefault((k, fw), []).append((i, r0, r1, c0, c1))
     for (k, fw), members in jobs.items():
         feat = pyr.levels[k]
@@ -395,15 +445,24 @@ def _score_all(classifiers, pyr: HogPyramid, levels, windows):
 def _score_group(feat, fw, members, classifiers, k, out):
     """Score a group of same-width filters on one level with one matrix multiply."""
     # Union of the members' ranges: rows and columns of cells that must be unrolled.
-    R0 = min(m[1] for m in members)
-    C0 = min(m[3] for m in members)
-    R1 = max(m[2] + classifiers[m[0]].filter_shape[0] for m in members)   # exclusive
-    C1 = max(m[4] for m in members) + fw                                  # exclusive
-    sub = feat[R0:R1, C0:C1]
-    nr, ncol = sub.shape[0], sub.shape[1] - fw + 1
-    # Unroll along x: row (y, x) holds cells x .. x + fw - 1 of row y (fw * 31 values).
-    x_unrolled = np.lib.stride_tricks.sliding_window_view(sub, fw, axis=1)  # (nr, ncol, 31, fw)
-    x_unrolled = x_unrolled.transpose(0, 1, 3, 2).reshape(nr * ncol, fw * FEATURE_DIM)
+    if len(members) == 1:
+        i, R0, R1, C0, C1 = members[0]
+        R1 += classifiers[i].filter_shape[0]                              # exclusive
+    else:
+        R0 = min(m[1] for m in members)
+        C0 = min(m[3] for m in members)
+        R1 = max(m[2] + classifiers[m[0]].filter_shape[0] for m in members)   # exclusive
+        C1 = max(m[4] for m in members)
+    C1 += fw                                                              # exclusive
+    R1, C1 = min(R1, feat.shape[0]), min(C1, feat.shape[1])
+    nr, ncol = R1 - R0, C1 - C0 - fw + 1
+    # Unroll along x: row (y, x) holds cells x .. x + fw - 1 of row y (fw * 31 values).  (A strided
+    # view built directly -- sliding_window_view's checks cost more than the copy at these sizes.)
+    if not feat.flags.c_contiguous:
+        feat = np.ascontiguousarray(feat)
+    t0, t1, t2 = feat.strides
+    x_unrolled = np.ndarray((nr, ncol, fw, FEATURE_DIM), feat.dtype, feat, R0 * t0 + C0 * t1, (t0, t1, t1, t2)) \
+        .reshape(nr * ncol, fw * FEATURE_DIM)
     rows, offs = [], []
     o = 0
     for m in members:
@@ -417,11 +476,10 @@ def _score_group(feat, fw, members, classifiers, k, out):
     for m, off in zip(members, offs):
         i, r0, r1, c0, c1 = m
         fh = classifiers[i].filter_shape[0]
-        part = resp[r0 - R0:, c0 - C0:c1 - C0 + 1, off:off + fh]
         nrow = r1 - r0 + 1
         # score[y, x] = sum_d resp[y + d, x, d]: a diagonal of the row responses (strided view).
-        diag = np.lib.stride_tricks.as_strided(part, shape=(nrow, c1 - c0 + 1, fh),
-                                               strides=(s0, s1, s0 + s2), writeable=False)
+        start = (r0 - R0) * s0 + (c0 - C0) * s1 + off * s2
+        diag = np.ndarray((nrow, c1 - c0 + 1, fh), resp.dtype, resp, start, (s0, s1, s0 + s2))
         out[i].append((k, r0, c0, diag.sum(axis=2) + np.float32(classifiers[i].bias)))
 
 

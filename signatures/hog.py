@@ -20,6 +20,11 @@ Pyramid levels are indexed by an integer ``k`` with scale ``2 ** (-k / scales_pe
 is the input resolution, ``k = scales_per_octave`` half of it.  A classifier stores its nominal
 ``k`` and searches ``k - 1 .. k + 1``, so levels are exact and shared by all classifiers.
 
+A detector that only searches windows needs a fraction of each level: :func:`build_pyramid` with
+``regions`` resizes (:func:`resize_area_region`, OpenCV's area decimation restricted to the region)
+and describes only a cell box per level plus :data:`REGION_MARGIN_CELLS`, and those cells are bit for
+bit the whole level's.
+
 Run ``python -m signatures.hog [IMAGE]`` to time one level and a pyramid.
 """
 from __future__ import annotations
@@ -33,7 +38,7 @@ import cv2
 import numpy as np
 
 __all__ = ["default_config", "FEATURE_DIM", "fhog", "HogPyramid", "build_pyramid", "level_scale",
-           "to_gray_float"]
+           "level_size", "resize_area_region", "to_gray_float", "REGION_MARGIN_CELLS"]
 
 #: HOG parameters.  Every classifier stores the values it was trained with; detection refuses a
 #: pyramid built with different ones.
@@ -64,8 +69,8 @@ def tune_malloc() -> bool:
     trims the heap after each free, so every level pays ~4 ms of page faults on a 640x480 image --
     as much as the arithmetic.  Raising the mmap and trim thresholds (64 MB / 256 MB) removes that
     cost; the price is that up to 256 MB of freed memory stays mapped.  Called once, lazily, by
-    :func:`fhog`; set the environment variable ``SCENESIG_NO_MALLOPT=1`` to skip it.  Returns True
-    if the thresholds were set.
+    :func:`fhog` and :func:`build_pyramid`; set the environment variable ``SCENESIG_NO_MALLOPT=1``
+    to skip it.  Returns True if the thresholds were set.
     """
     global _MALLOC_TUNED
     if _MALLOC_TUNED:
@@ -88,6 +93,12 @@ def tune_malloc() -> bool:
 def level_scale(k: int | np.ndarray, scales_per_octave: int) -> float | np.ndarray:
     """Scale of pyramid level ``k`` relative to the input image."""
     return 2.0 ** (-np.asarray(k, dtype=float) / scales_per_octave)
+
+
+def level_size(image_size: tuple[int, int], k: int, scales_per_octave: int) -> tuple[int, int]:
+    """(width, height) in pixels of pyramid level ``k`` of an image of ``image_size`` (width, height)."""
+    s = float(level_scale(k, scales_per_octave))
+    return int(round(image_size[0] * s)), int(round(image_size[1] * s))
 
 
 def to_gray_float(image: np.ndarray, color: bool = False) -> np.ndarray:
@@ -130,8 +141,8 @@ def _subcell_index(h: int, w: int, cell: int) -> np.ndarray:
         rows = (np.arange(h) // half).astype(np.intp)
         cols = (np.arange(w) // half).astype(np.intp)
         idx = ((rows[:, None] * (w // half) + cols[None, :]) * (_N_BINS + 1)).ravel()
-        if len(_INDEX_CACHE) > 64:
-            _INDEX_CACHE.clear()
+        if len(_INDEX_CACHE) >= 512:           # regions come in many sizes: drop the oldest
+            del _INDEX_CACHE[next(iter(_INDEX_CACHE))]
         _INDEX_CACHE[key] = idx
     return idx
 
@@ -173,13 +184,15 @@ def _cell_histograms(img: np.ndarray, cell: int) -> np.ndarray:
     sub += np.bincount(idx, w1, minlength=n)
     sub = sub.reshape(2 * hc, 2 * wc, _N_BINS + 1)
     sub[:, :, 0] += sub[:, :, _N_BINS]
-    sub = sub[:, :, :_N_BINS].astype(np.float32)
     # Bilinear spatial interpolation at half-cell resolution: a cell's triangular weight over the
     # four half-cells at distance 0.5 and 1.5 half-cells from its centre is (0.25, 0.75, 0.75, 0.25).
-    pad = np.pad(sub, ((1, 1), (0, 0), (0, 0)))
+    # (Zero padding written into preallocated arrays: np.pad costs more than the arithmetic here.)
+    pad = np.zeros((2 * hc + 2, 2 * wc, _N_BINS), np.float32)
+    pad[1:-1] = sub[:, :, :_N_BINS]
     rows = (0.25 * pad[0:2 * hc:2] + 0.75 * pad[1:2 * hc + 1:2]
             + 0.75 * pad[2:2 * hc + 2:2] + 0.25 * pad[3:2 * hc + 3:2])
-    pad = np.pad(rows, ((0, 0), (1, 1), (0, 0)))
+    pad = np.zeros((hc, 2 * wc + 2, _N_BINS), np.float32)
+    pad[:, 1:-1] = rows
     return (0.25 * pad[:, 0:2 * wc:2] + 0.75 * pad[:, 1:2 * wc + 1:2]
             + 0.75 * pad[:, 2:2 * wc + 2:2] + 0.25 * pad[:, 3:2 * wc + 3:2])
 
@@ -215,23 +228,156 @@ def fhog(image: np.ndarray, cell: int = 8, clip: float = 0.2, color: bool = Fals
     energy = np.einsum("ijk,ijk->ij", insens, insens)        # squared norm per cell
     # Energy of the 2x2 blocks with corners between cells (edge-replicated): block (i, j) covers
     # cells (i-1..i, j-1..j) of the padded grid; blk has shape (hc + 1, wc + 1).
-    e = np.pad(energy, 1, mode="edge")
+    e = np.empty((hc + 2, wc + 2), energy.dtype)         # np.pad(energy, 1, mode="edge"), faster
+    e[1:-1, 1:-1] = energy
+    e[0, 1:-1], e[-1, 1:-1] = energy[0], energy[-1]
+    e[:, 0], e[:, -1] = e[:, 1], e[:, -2]
     blk = e[:-1, :-1] + e[1:, :-1] + e[:-1, 1:] + e[1:, 1:]
     # The four blocks containing cell (i, j): top-left, top-right, bottom-left, bottom-right.
     norms = np.stack([blk[:-1, :-1], blk[:-1, 1:], blk[1:, :-1], blk[1:, 1:]])
     inv = 1.0 / np.sqrt(norms + _EPS)                        # (4, hc, wc)
     out = np.empty((hc, wc, FEATURE_DIM), np.float32)
-    sens_sum = np.zeros((hc, wc, _N_BINS), np.float32)
-    ins_sum = np.zeros((hc, wc, 9), np.float32)
-    for k in range(4):
-        hs = np.minimum(hist * inv[k][:, :, None], clip)
-        sens_sum += hs
-        ins_sum += np.minimum(insens * inv[k][:, :, None], clip)
-        # Texture: summed clipped sensitive energy under normalisation k (FHOG's 0.2357 = 1/sqrt(18)).
-        out[:, :, 27 + k] = 0.2357 * hs.sum(axis=2)
-    out[:, :, :18] = 0.5 * sens_sum
-    out[:, :, 18:27] = 0.5 * ins_sum
+    # All four normalisations at once (sums over them in the order k = 0..3, as a loop would).
+    inv = inv[:, :, :, None]
+    hs = np.minimum(hist[None] * inv, clip)                  # (4, hc, wc, 18)
+    out[:, :, :18] = 0.5 * hs.sum(axis=0)
+    out[:, :, 18:27] = 0.5 * np.minimum(insens[None] * inv, clip).sum(axis=0)
+    # Texture: summed clipped sensitive energy under each normalisation (FHOG's 0.2357 = 1/sqrt(18)).
+    out[:, :, 27:] = np.moveaxis(0.2357 * hs.sum(axis=3), 0, 2)
     return out
+
+
+# ------------------------------------------------------------------------------ regions of a level
+#: Cells computed around a requested region of a level: a cell's features depend on the gradients
+#: of the half-cells bordering it (bilinear votes) and on its neighbours' energies (block
+#: normalisation), so two extra cells on each side make the requested cells exactly the same as
+#: in the whole level's features.
+REGION_MARGIN_CELLS = 2
+
+# Area-decimation tables per (source length, destination length): they depend only on the sizes.
+_AREA_TABS: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _area_taps(ssize: int, dsize: int) -> tuple[np.ndarray, np.ndarray]:
+    """Source indices (dsize, T) and weights (dsize, T) of OpenCV's INTER_AREA decimation along one axis.
+
+    The same table as OpenCV's ``computeResizeAreaTab`` (a destination pixel averages the source
+    pixels it covers, the partly covered ones weighted by their covered share), padded with zero
+    weights to a fixed number of taps T.
+    """
+    key = (int(ssize), int(dsize))
+    tab = _AREA_TABS.get(key)
+    if tab is not None:
+        return tab
+    scale = 1.0 / (dsize / ssize)          # OpenCV: scale_x = 1. / inv_scale_x
+    rows: list[list[tuple[int, np.float32]]] = []
+    for dx in range(dsize):
+        fsx1 = dx * scale
+        fsx2 = fsx1 + scale
+        cell = min(scale, ssize - fsx1)
+        sx1, sx2 = int(np.ceil(fsx1)), int(np.floor(fsx2))
+        sx2 = min(sx2, ssize - 1)
+        sx1 = min(sx1, sx2)
+        taps = []
+        if sx1 - fsx1 > 1e-3:
+            taps.append((sx1 - 1, np.float32((sx1 - fsx1) / cell)))
+        for sx in range(sx1, sx2):
+            taps.append((sx, np.float32(1.0 / cell)))
+        if fsx2 - sx2 > 1e-3:
+            taps.append((sx2, np.float32(min(min(fsx2 - sx2, 1.0), cell) / cell)))
+        rows.append(taps)
+    T = max(len(t) for t in rows)
+    idx = np.zeros((dsize, T), np.intp)
+    wts = np.zeros((dsize, T), np.float32)
+    for d, taps in enumerate(rows):
+        for t, (si, a) in enumerate(taps):
+            idx[d, t], wts[d, t] = si, a
+        idx[d, len(taps):] = taps[0][0]     # padding taps: weight 0 on a pixel already used
+    if len(_AREA_TABS) > 256:
+        _AREA_TABS.clear()
+    _AREA_TABS[key] = (idx, wts)
+    return idx, wts
+
+
+def resize_area_region(img: np.ndarray, size: tuple[int, int], rows: tuple[int, int],
+                       cols: tuple[int, int]) -> np.ndarray:
+    """Rows ``[y0, y1)`` and columns ``[x0, x1)`` of ``cv2.resize(img, size, interpolation=INTER_AREA)``.
+
+    Only the source rows those destination pixels cover are read: OpenCV decimates them along x
+    (its own x table), and the y pass repeats OpenCV's arithmetic (float32 products accumulated tap
+    by tap) on the needed columns only.  For a float32 image with integer values (a converted uint8
+    image, as the pyramid's input always is) the result equals the crop of the full resize bit for
+    bit; for other values it agrees to float32 rounding.  Only downscaling (``size`` <= the image
+    size) is supported.
+
+    Parameters
+    ----------
+    img : (H, W) or (H, W, C) float32 image.
+    size : (width, height) of the whole resized image.
+    rows, cols : destination row and column ranges (end exclusive).
+    """
+    h, w = img.shape[:2]
+    dw, dh = int(size[0]), int(size[1])
+    if dw > w or dh > h:
+        raise ValueError(f"resize_area_region only downscales; {w}x{h} -> {dw}x{dh}")
+    y0, y1 = int(rows[0]), int(rows[1])
+    x0, x1 = int(cols[0]), int(cols[1])
+    if not (0 <= y0 < y1 <= dh and 0 <= x0 < x1 <= dw):
+        raise ValueError(f"region rows {rows} cols {cols} outside the {dw}x{dh} resized image")
+    yi, yw = _area_taps(h, dh)
+    yi, yw = yi[y0:y1], yw[y0:y1]
+    sy0, sy1 = int(yi[0, 0]), int(yi.max()) + 1        # taps are sorted: the first is the smallest
+    yi = yi - sy0
+    extra = (None,) * (img.ndim - 1)          # broadcast a tap's weights over a row (and channels)
+    rows_src = img[sy0:sy1]
+    if dw < w:
+        # The horizontal pass is OpenCV's own: resizing the needed source rows in x only runs the
+        # same x table (and a y table of weight 1, which changes nothing) -- much faster than
+        # gathering columns in numpy.
+        buf = cv2.resize(np.ascontiguousarray(rows_src), (dw, sy1 - sy0), interpolation=_INTERP)[:, x0:x1]
+    else:
+        buf = rows_src[:, x0:x1]
+    # (Row gathers by indexing: np.take along axis 0 of this strided view is up to 20x slower.)
+    out = yw[(slice(None), 0) + extra] * buf[yi[:, 0]]
+    for t in range(1, yi.shape[1]):
+        out += yw[(slice(None), t) + extra] * buf[yi[:, t]]
+    return out
+
+
+def _level_region(img: np.ndarray, size: tuple[int, int], box, cfg: dict, full_fraction: float):
+    """FHOG features of one level computed only around a cell box.
+
+    Returns ``(features, valid)``: features of the whole level's shape, zero outside ``valid``, the
+    cell box ``(r0, r1, c0, c1)`` (end exclusive, containing ``box``) where they are exact.  When the
+    box with its margin covers more than ``full_fraction`` of the level the whole level is computed
+    (one OpenCV resize is cheaper then) and ``valid`` is None.
+    """
+    cell, clip, color = int(cfg["cell"]), float(cfg["clip"]), bool(cfg["color"])
+    lw, lh = size
+    hc, wc = lh // cell, lw // cell
+    r0, r1 = max(0, int(box[0])), min(hc, int(box[1]))
+    c0, c1 = max(0, int(box[2])), min(wc, int(box[3]))
+    m = REGION_MARGIN_CELLS
+    a0, a1 = max(0, r0 - m), min(hc, r1 + m)
+    b0, b1 = max(0, c0 - m), min(wc, c1 + m)
+    h, w = img.shape[:2]
+    upscale = lw > w or lh > h
+    if r1 <= r0 or c1 <= c0 or upscale or (a1 - a0) * (b1 - b0) > full_fraction * hc * wc:
+        lvl = img if (lw, lh) == (w, h) else cv2.resize(img, (lw, lh), interpolation=_INTERP)
+        return fhog(lvl, cell, clip, color), None
+    rows, cols = (a0 * cell, a1 * cell), (b0 * cell, b1 * cell)
+    if (lw, lh) == (w, h):
+        lvl = img[rows[0]:rows[1], cols[0]:cols[1]]
+    else:
+        lvl = resize_area_region(img, (lw, lh), rows, cols)
+    f = fhog(lvl, cell, clip, color)
+    # Cells next to the crop's edges miss neighbours the whole level has: keep only exact ones
+    # (at the level's own border the crop has the same border as the level).
+    e0, e1 = (a0 + m if a0 > 0 else 0), (a1 - m if a1 < hc else hc)
+    g0, g1 = (b0 + m if b0 > 0 else 0), (b1 - m if b1 < wc else wc)
+    out = np.zeros((hc, wc, FEATURE_DIM), np.float32)
+    out[e0:e1, g0:g1] = f[e0 - a0:e1 - a0, g0 - b0:g1 - b0]
+    return out, (e0, e1, g0, g1)
 
 
 @dataclass
@@ -249,12 +395,25 @@ class HogPyramid:
         HOG parameters used (cell, scales_per_octave, clip, color).
     sizes : dict[int, tuple]
         Level -> (width, height) in pixels of the resized image.
+    regions : dict[int, tuple]
+        Levels computed only in part (:func:`build_pyramid`'s ``regions``): level -> cell box
+        ``(r0, r1, c0, c1)``, end exclusive, where the features are exact; zero elsewhere.  Levels
+        not listed are complete.
     """
 
     levels: dict[int, np.ndarray]
     image_size: tuple[int, int]
     config: dict
     sizes: dict[int, tuple[int, int]] = field(default_factory=dict)
+    regions: dict[int, tuple[int, int, int, int]] = field(default_factory=dict)
+
+    def valid_region(self, k: int) -> tuple[int, int, int, int]:
+        """Cell box ``(r0, r1, c0, c1)`` (end exclusive) of level k where the features were computed."""
+        box = self.regions.get(k)
+        if box is None:
+            hc, wc = self.levels[k].shape[:2]
+            return 0, hc, 0, wc
+        return box
 
     @property
     def cell(self) -> int:
@@ -297,7 +456,8 @@ class HogPyramid:
         return all(self.config.get(key) == config.get(key) for key in default_config)
 
 
-def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None) -> HogPyramid:
+def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None, regions: dict | None = None,
+                  full_fraction: float = 0.8) -> HogPyramid:
     """HOG pyramid of one image.
 
     Parameters
@@ -309,27 +469,41 @@ def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None) ->
     levels : iterable of int, optional
         Level indices to compute (default ``0 .. 2 * scales_per_octave``, i.e. two octaves).
         Levels too small to hold one cell are skipped.
+    regions : dict, optional
+        Level -> cell box ``(r0, r1, c0, c1)`` (end exclusive) that is needed: only that box (plus
+        :data:`REGION_MARGIN_CELLS`) is resized and described, and the features in it are exactly
+        those of the whole level (a tracking detector searches small windows, so most of each
+        level is never looked at).  Levels without an entry are computed whole.
+    full_fraction : float
+        A region covering more than this share of its level is computed whole (cheaper).
 
     Returns
     -------
     HogPyramid
+        With ``regions`` recording the partly computed levels.
     """
     cfg = {**default_config, **(config or {})}
     cfg = {k: cfg[k] for k in default_config}
     spo, cell = int(cfg["scales_per_octave"]), int(cfg["cell"])
+    tune_malloc()        # before the first resize, not only the first fhog (see tune_malloc)
     img = to_gray_float(image, bool(cfg["color"]))
     h, w = img.shape[:2]
     ks = range(0, 2 * spo + 1) if levels is None else sorted({int(k) for k in levels})
-    out, sizes = {}, {}
+    out, sizes, valid = {}, {}, {}
     for k in ks:
-        s = float(level_scale(k, spo))
-        lw, lh = int(round(w * s)), int(round(h * s))
+        lw, lh = level_size((w, h), k, spo)
         if lw < cell or lh < cell:
             continue
-        lvl = img if (lw, lh) == (w, h) else cv2.resize(img, (lw, lh), interpolation=_INTERP)
-        out[k] = fhog(lvl, cell, float(cfg["clip"]), bool(cfg["color"]))
+        box = None if regions is None else regions.get(k)
+        if box is None:
+            lvl = img if (lw, lh) == (w, h) else cv2.resize(img, (lw, lh), interpolation=_INTERP)
+            out[k] = fhog(lvl, cell, float(cfg["clip"]), bool(cfg["color"]))
+        else:
+            out[k], part = _level_region(img, (lw, lh), box, cfg, full_fraction)
+            if part is not None:
+                valid[k] = part
         sizes[k] = (lw, lh)
-    return HogPyramid(out, (w, h), cfg, sizes)
+    return HogPyramid(out, (w, h), cfg, sizes, valid)
 
 
 def _time(fn, repeat: int = 20) -> float:

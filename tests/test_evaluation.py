@@ -53,8 +53,9 @@ def test_summary_of_absolute_values():
 def test_blind_distances():
     s = np.array([0.0, 5, 10, 15, 20])
     b = blind_distances(s, [False, True, False, False, True])
-    assert b[0] == np.inf
-    assert b[1:] == pytest.approx([0, 5, 10, 0])
+    # before the first localisation: distance from the (known) start pose
+    assert b == pytest.approx([0, 0, 5, 10, 0])
+    assert blind_distances(s, np.zeros(5, bool)) == pytest.approx(s)
 
 
 def test_coverage_on_a_hand_example():
@@ -90,7 +91,8 @@ def test_coverage_integrates_within_segments_exactly():
 def test_never_localised_run():
     s = np.linspace(0, 100, 11)
     m = coverage_metrics(s, np.zeros(11, bool))
-    assert m["localised_fraction"] == 0.0 and m["blind_fraction_over_20m"] == 1.0
+    # only the first 10 m after the known start count as localised, all beyond 20 m as blind
+    assert m["localised_fraction"] == pytest.approx(0.1) and m["blind_fraction_over_20m"] == pytest.approx(0.8)
     # 10 m frames: the count first exceeds 20 m at 30 m, restarts there, and again at 60 m and 90 m.
     assert m["failures"] == 3
 

@@ -301,3 +301,53 @@ def test_benchmark_reports_accuracy():
     rep = benchmark(n_landmarks=60, n_frames=15, n_random=6, repeats=1, seed=3)
     assert rep["random_kept"] == 0 and rep["kept_true"] >= 50
     assert rep["depth_rel_error_median"] < 0.05 and rep["seconds_median"] > 0
+
+
+def _lagging_detector(depth, seed=0, lag=0.4):
+    """Detections of landmarks at ``depth`` (N,) by a detector that searches one pyramid level either side
+    of the nominal scale 0.5 (4 levels per octave).  Where the landmark's apparent scale leaves that range
+    the detector still fires -- at the edge scale, on a part of the grown patch that moves only ``lag`` as
+    far from its reference position as the landmark does (what big patches do on the simulator)."""
+    rng = np.random.default_rng(seed)
+    T_wp, ref = straight_window(21, 1.0)
+    N = len(depth)
+    uv0 = np.column_stack([rng.uniform(60, 580, N), rng.choice([rng.uniform(40, 160), rng.uniform(330, 440)], N)])
+    P = place_points(uv0, depth)
+    uv, z = reproject(camera_poses(T_wp, T_VC), P, CAM)
+    s_true = 0.5 * z / z[:, ref:ref + 1]
+    lo, hi = 0.5 * 2 ** -0.25, 0.5 * 2 ** 0.25
+    inside = (s_true >= lo * 2 ** -0.125) & (s_true <= hi * 2 ** 0.125)
+    uv = np.where(inside[..., None], uv, uv[:, ref:ref + 1] + lag * (uv - uv[:, ref:ref + 1]))
+    uv = uv + 0.5 * rng.standard_normal(uv.shape)
+    vis = (z > 0.5) & CAM.in_image(uv.reshape(-1, 2)).reshape(z.shape)
+    uv[~vis] = np.nan
+    with np.errstate(invalid="ignore", divide="ignore"):  # behind the camera: not visible anyway
+        level = np.clip(np.round(4 * np.log2(s_true / 0.5)), -1, 1)  # the level it fired at
+    scale = 0.5 * 2.0 ** (level / 4)
+    return uv, scale, (lo, hi), T_wp, ref, inside
+
+
+def test_scale_gate_drops_firings_the_depth_rules_out():
+    depth = np.random.default_rng(1).uniform(8.0, 30.0, 80)
+    uv, scale, rng_, T_wp, ref, inside = _lagging_detector(depth)
+    assert (~inside).sum() > 0.25 * inside.size  # near landmarks grow out of the searched levels
+    plain = refine_landmarks(Detections(uv, scale, 1.0, 1.0), T_wp, CAM, T_VC, ref)
+    gated = refine_landmarks(Detections(uv, scale, 1.0, 1.0, scale_range=rng_), T_wp, CAM, T_VC, ref)
+    assert not plain.censored.any()
+
+    def err(res):
+        k = res.kept
+        return np.median(np.abs(res.depth[k] - depth[k]) / depth[k]), k.sum()
+
+    e_plain, n_plain = err(plain)
+    e_gated, n_gated = err(gated)
+    # the lagging firings drag ungated depths far; gated, the landmarks come out right -- and are kept
+    assert e_gated < 0.03 and e_plain > 3 * e_gated, (e_plain, e_gated)
+    assert n_gated >= 0.9 * len(depth)
+    assert np.mean((plain.depth - depth)[plain.kept] > 0) > 0.8  # the bias is far, not random
+    # what was censored is (nearly) exactly the firings outside the searched scales
+    valid = np.isfinite(uv).all(axis=2)
+    agree = (gated.censored == (~inside & valid))[gated.kept]
+    assert agree.mean() > 0.97
+    with pytest.raises(ValueError, match="scale_range"):
+        Detections(uv, scale, 1.0, 1.0, scale_range=np.ones((3, 2)))

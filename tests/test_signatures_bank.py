@@ -146,3 +146,27 @@ def test_empty_bank_stores_and_detects():
     b = Bank.from_arrays(Bank([]).to_arrays())
     assert len(b) == 0
     assert b.detect(np.zeros((64, 64), np.uint8)).x.shape == (0, 1)
+
+
+def test_windowed_pyramid_computes_less_and_detects_the_same():
+    import cv2
+    rng = np.random.default_rng(7)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (240, 320), dtype=np.uint8), (3, 3), 1)
+    bank = _bank(np.random.default_rng(3), SPECS)
+    win = np.array([[60, 50, 110, 90], [200, 150, 240, 190], [20, 20, 60, 60],
+                    [250, 30, 300, 70], [100, 120, 150, 170], [np.nan] * 4])
+    win[5] = [150, 100, 190, 130]
+    levels = [[c.level, c.level + 1] for c in bank]
+    part = bank.pyramid(img, levels=levels, windows=win)
+    assert part.regions                                     # levels computed only in part
+    full = bank.pyramid(img, levels=levels)
+    assert not full.regions
+    a = bank.detect(part, windows=win, levels=levels)
+    b = bank.detect(full, windows=win, levels=levels)
+    c = bank.detect(img, windows=win, levels=levels)        # the bank builds the windowed pyramid itself
+    for f in ("x", "y", "score", "prob", "level"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+        np.testing.assert_array_equal(getattr(c, f), getattr(b, f))
+    # A partial pyramid refuses windows it was not built for.
+    with pytest.raises(ValueError, match="holds features only"):
+        bank.detect(part, levels=levels)

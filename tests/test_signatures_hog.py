@@ -83,3 +83,45 @@ def test_pyramid_feature_of_level_equals_fhog_of_resized_image():
     w, h = pyr.sizes[1]
     ref = hog.fhog(cv2.resize(img.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA))
     np.testing.assert_allclose(pyr.levels[1], ref, atol=1e-6)
+
+
+def _textured(h=240, w=320, seed=4):
+    import cv2
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(rng.integers(0, 255, (h, w), dtype=np.uint8), (5, 5), 1.2)
+
+
+@pytest.mark.parametrize("color", [False, True])
+def test_resize_area_region_equals_the_crop_of_the_opencv_resize(color):
+    import cv2
+    img = _textured()
+    if color:
+        img = np.dstack([img, img[::-1], 255 - img])
+    f = hog.to_gray_float(img, color)
+    for k in (1, 2, 3, 4, 5):                     # non-integer and integer (level 4: /2) factors
+        size = hog.level_size((320, 240), k, 4)
+        full = cv2.resize(f, size, interpolation=cv2.INTER_AREA)
+        for rows, cols in (((0, size[1]), (0, size[0])), ((7, 40), (13, 90)), ((size[1] - 9, size[1]), (0, 5))):
+            part = hog.resize_area_region(f, size, rows, cols)
+            assert np.array_equal(part, full[rows[0]:rows[1], cols[0]:cols[1]])
+    with pytest.raises(ValueError):
+        hog.resize_area_region(f, (400, 300), (0, 10), (0, 10))      # upscaling
+    with pytest.raises(ValueError):
+        hog.resize_area_region(f, (160, 120), (0, 130), (0, 10))     # outside the resized image
+
+
+def test_pyramid_regions_hold_exactly_the_whole_levels_features():
+    img = _textured()
+    full = hog.build_pyramid(img, levels=[0, 1, 3, 4])
+    boxes = {0: (10, 14, 20, 26), 1: (0, 5, 0, 7), 3: (8, 17, 15, 20), 4: (3, 6, 9, 14)}
+    part = hog.build_pyramid(img, levels=[0, 1, 3, 4], regions=boxes)
+    for k, (r0, r1, c0, c1) in boxes.items():
+        e0, e1, g0, g1 = part.valid_region(k)
+        assert e0 <= r0 and e1 >= r1 and g0 <= c0 and g1 >= c1        # at least what was asked
+        assert part.levels[k].shape == full.levels[k].shape
+        assert np.array_equal(part.levels[k][e0:e1, g0:g1], full.levels[k][e0:e1, g0:g1])
+        assert (e1 - e0) * (g1 - g0) < full.levels[k].shape[0] * full.levels[k].shape[1]
+        assert not part.levels[k][:e0].any() and not part.levels[k][e1:].any()   # nothing else computed
+    # A region covering most of its level is computed whole.
+    whole = hog.build_pyramid(img, levels=[2], regions={2: (0, 20, 0, 28)})
+    assert 2 not in whole.regions and whole.valid_region(2) == (0,) + whole.levels[2].shape[:1] + (0, whole.levels[2].shape[1])

@@ -1,0 +1,58 @@
+"""``scenesig demo`` end to end on the tiny world: every stage runs, summary.json has the issue's schema,
+the report is written, and a re-run reuses what is there."""
+import json
+
+import pytest
+
+from localiser.cli import main
+from localiser.demo import default_config
+
+METRIC_KEYS = {"method", "run", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
+               "failures_per_km", "blind_fraction_over_20m", "ms_per_detection", "ms_per_solve",
+               "ms_per_odometry_update", "realtime_factor"}
+
+
+@pytest.fixture(scope="module")
+def demo_out(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    assert main(["demo", "--preset", "tiny", "--out", str(out), "--jobs", "2"]) == 0
+    return out
+
+
+def test_summary_schema(demo_out):
+    s = json.loads((demo_out / "summary.json").read_text())
+    assert set(s) >= {"runs", "seconds"} and s["seconds"] > 0
+    assert [r["conditions"] for r in s["runs"]] == [[c] for c in default_config["live"]]
+    for r in s["runs"]:
+        assert set(r["methods"]) == {"signatures", "orb", "sift"}
+        for name, m in r["methods"].items():
+            assert METRIC_KEYS <= set(m), METRIC_KEYS - set(m)
+            assert m["method"] == name and m["run"] == r["run"]
+            # the summary holds the localiser's own metrics.json, not a copy that could drift
+            on_disk = json.loads((demo_out / "localise" / r["run"] / name / "metrics.json").read_text())
+            assert on_disk == m
+
+
+def test_signatures_localise_every_held_out_run(demo_out):
+    s = json.loads((demo_out / "summary.json").read_text())
+    for r in s["runs"]:
+        m = r["methods"]["signatures"]
+        assert m["failures"] == 0, (r["run"], m["failures"])
+        assert m["blind_fraction_over_20m"] <= 0.01, (r["run"], m["blind_fraction_over_20m"])
+
+
+def test_report_and_matching_written(demo_out):
+    html = (demo_out / "report" / "index.html").read_text()
+    assert "<img" in html
+    assert (demo_out / "matching" / "matching.json").is_file()
+    assert (demo_out / "map" / "build_summary.json").is_file()
+
+
+def test_rerun_reuses_outputs(demo_out, capsys):
+    before = {p: p.stat().st_mtime_ns for p in (demo_out / "world").rglob("frames.csv")}
+    loc = demo_out / "localise" / "run06_night" / "signatures" / "metrics.json"
+    loc_before = loc.read_bytes()
+    assert main(["demo", "--preset", "tiny", "--out", str(demo_out), "--jobs", "1"]) == 0
+    assert "reusing" in capsys.readouterr().out
+    assert {p: p.stat().st_mtime_ns for p in (demo_out / "world").rglob("frames.csv")} == before
+    assert loc.read_bytes() == loc_before

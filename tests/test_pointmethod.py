@@ -1,0 +1,33 @@
+"""ORB/SIFT weak localiser: the image-only stage (``prepare``) that the replay runs ahead on a worker."""
+import numpy as np
+import pytest
+
+from localiser.pipeline import MotionPrior, make_method
+from localiser.pointmethod import LiveFrame
+from localiser.solver import pose_exp
+
+from point_world import CAMERA, T_VC, camera_pose, render, vehicle_pose
+from test_pointmap import keyframe_map, point_store, world  # noqa: F401  (module fixtures)
+
+
+@pytest.mark.parametrize("kind", ["orb", "sift"])
+def test_prepared_frame_gives_the_same_observation_and_counts_its_time(point_store, world, kind):  # noqa: F811
+    store, T_wp0 = point_store
+    T_pv = vehicle_pose(3.0, 0.8, np.radians(2.0))
+    live, _ = render(camera_pose(T_pv), world)
+    method = make_method(kind, store, CAMERA, T_VC)
+    P = np.diag([0.01, 0.01, 0.03, 1.0, 1.0, 0.3]) ** 2
+    prior = MotionPrior(0.0, T_wp0 @ T_pv @ pose_exp([0.005, -0.005, 0.02, 0.5, -0.4, 0.1]), P, 0, T_wp0, 1,
+                        False, 0.0)
+    frame = method.prepare(live)
+    assert isinstance(frame, LiveFrame) and frame.shape == live.shape[:2] and frame.ms > 0
+    assert method.prepare(frame) is frame                     # already prepared: passed through
+    a, b = method.detect(live, 0, prior), method.detect(frame, 0, prior)
+    assert len(a) >= 30
+    for f in ("uv", "R", "xyz", "map_index"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    assert b.ms >= frame.ms                                   # the extraction is part of detection
+    ma, mb = method.solve(a, 0, prior), method.solve(b, 0, prior)
+    np.testing.assert_array_equal(ma.constraint.T_world_vehicle, mb.constraint.T_world_vehicle)
+    with pytest.raises(ValueError, match="camera"):
+        method.prepare(live[:100])
