@@ -88,15 +88,17 @@ def _fmt(v, digits=2):
 
 
 def print_table(rows: list[dict], file=sys.stdout) -> None:
-    """Per run and method: lateral median, heading median, localised fraction, failures."""
+    """Per run and method: lateral median, heading median (against truth), lateral median against the
+    map (simulated maps; '-' otherwise), localised fraction, failures, blind share."""
     head = f"{'run':16s} {'conditions':10s} {'method':10s} {'lateral m':>9s} {'heading °':>9s} " \
-           f"{'localised':>9s} {'failures':>8s} {'blind>20m':>9s}"
+           f"{'lat/map m':>9s} {'localised':>9s} {'failures':>8s} {'blind>20m':>9s}"
     print(head, file=file)
     print("-" * len(head), file=file)
     for r in rows:
         for name, m in r["methods"].items():
             print(f"{r['run']:16s} {','.join(r['conditions']):10s} {name:10s} "
                   f"{_fmt(m['lateral_error_m']['median']):>9s} {_fmt(m['heading_error_deg']['median']):>9s} "
+                  f"{_fmt((m.get('lateral_error_map_m') or {}).get('median')):>9s} "
                   f"{_fmt(m['localised_fraction']):>9s} {m['failures']:>8d} "
                   f"{_fmt(m['blind_fraction_over_20m'], 3):>9s}", file=file)
 

@@ -632,8 +632,8 @@ def plot_dead_reckoning(curves: dict, d_grid, path) -> Path:
     return _savefig(fig, path)
 
 
-SUMMARY_COLUMNS = ("run", "conditions", "method", "lateral_median_m", "heading_median_deg", "localised_fraction",
-                   "failures", "failures_per_km", "blind_fraction_over_20m", "distance_m")
+SUMMARY_COLUMNS = ("run", "conditions", "method", "lateral_median_m", "heading_median_deg", "lateral_map_median_m",
+                   "localised_fraction", "failures", "failures_per_km", "blind_fraction_over_20m", "distance_m")
 
 
 def summary_rows(outputs: list) -> list[dict]:
@@ -644,6 +644,9 @@ def summary_rows(outputs: list) -> list[dict]:
         rows.append({"run": o.run, "conditions": list(m.get("conditions") or []), "method": o.method,
                      "lateral_median_m": (m.get("lateral_error_m") or {}).get("median"),
                      "heading_median_deg": (m.get("heading_error_deg") or {}).get("median"),
+                     # relative to the map (simulated maps only): the localiser's own error, without the
+                     # map's georeferencing error that every method inherits
+                     "lateral_map_median_m": (m.get("lateral_error_map_m") or {}).get("median"),
                      "localised_fraction": m.get("localised_fraction"), "failures": m.get("failures"),
                      "failures_per_km": m.get("failures_per_km"),
                      "blind_fraction_over_20m": m.get("blind_fraction_over_20m"), "distance_m": m.get("distance_m"),

@@ -412,6 +412,9 @@ def _write_summary(out: Path, places, stats: dict, seconds: float) -> dict:
         "places": len(places),
         "signatures_per_place_mean": float(np.mean([st["signatures"] for st in allstats.values()])) if allstats else 0.0,
         "bytes_per_place_mean": float(np.mean(sizes)) if sizes else 0.0,
+        # where the bytes go: the scene-signature bank and its landmarks, the point-feature baseline's
+        # keyframe features, the keyframe image for figures, and the metadata
+        "bytes_per_place_by_part_mean": _bytes_by_part(files),
         "seconds_per_place_mean": float(np.mean([st["seconds"] for st in allstats.values()])) if allstats else 0.0,
         "landmark_depth_rel_error_median": float(np.median(errs)) if errs else None,
         "landmark_depth_rel_error_quartiles": [float(q) for q in np.percentile(errs, [25, 50, 75])] if errs else None,
@@ -426,6 +429,25 @@ def _write_summary(out: Path, places, stats: dict, seconds: float) -> dict:
     tmp.write_text(json.dumps(summary, indent=2) + "\n")
     os.replace(tmp, path)
     return summary
+
+
+#: Parts of a place file, by member-name prefix (mapping.store's layout).
+_PARTS = {"signatures": ("bank/", "landmarks", "covariances", "classifier_ids"), "point_features": ("points/",),
+          "keyframe": ("keyframe",)}
+
+
+def _bytes_by_part(files) -> dict:
+    """Mean stored (compressed) bytes per place file of each part in :data:`_PARTS` (the rest: ``meta``)."""
+    import zipfile
+
+    totals = {k: 0 for k in (*_PARTS, "meta")}
+    for f in files:
+        with zipfile.ZipFile(f) as z:
+            for info in z.infolist():
+                part = next((k for k, prefixes in _PARTS.items() if info.filename.startswith(prefixes)), "meta")
+                # the member's share of the file: its compressed data plus its local and central headers
+                totals[part] += info.compress_size + 30 + 46 + 2 * len(info.filename.encode())
+    return {k: (v / len(files) if files else 0.0) for k, v in totals.items()}
 
 
 def _load_config(text: str | None) -> dict | None:
