@@ -52,7 +52,7 @@ import numpy as np
 from mapping.refine import default_config as refine_default
 from mapping.store import MapStore, PlaceData
 from signatures.bank import Bank
-from surveys.geometry import Camera, invert
+from surveys.geometry import Camera, invert, point_pose_jacobian
 
 __all__ = ["default_config", "Observation", "Detector", "search_windows", "measurement_covariance",
            "projection_jacobians"]
@@ -163,14 +163,7 @@ def projection_jacobians(landmarks: np.ndarray, T_place_vehicle: np.ndarray, cam
     uv, _ = camera.project(safe)
     uv[~front] = np.nan
     Jp = camera.project_jacobian(safe)            # (n, 2, 3), undistorted model (first order)
-    n = len(P)
-    # P_v(ξ) = Exp(-ξ) P_v ≈ P_v + [P_v]x ω - v   (see localiser.solver)
-    D = np.zeros((n, 3, 6))
-    x, y, z = P_v[:, 0], P_v[:, 1], P_v[:, 2]
-    D[:, 0, 1], D[:, 0, 2] = -z, y
-    D[:, 1, 0], D[:, 1, 2] = z, -x
-    D[:, 2, 0], D[:, 2, 1] = -y, x
-    D[:, 0, 3] = D[:, 1, 4] = D[:, 2, 5] = -1.0
+    D = point_pose_jacobian(P_v)              # P_v(ξ) = Exp(-ξ) P_v ≈ P_v + [P_v]x ω - v
     J_pose = Jp @ (R_cv @ D)
     J_point = Jp @ (R_cv @ R_pv.T)
     return uv, J_pose, J_point, front

@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, rot_z
+from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, point_pose_jacobian, rot_z
 
 __all__ = ["default_config", "SolveResult", "LocalisationConstraint", "solve", "solve_pnp_prior",
            "pose_exp", "pose_log", "benchmark", "synthetic_problem", "default_pnp_config"]
@@ -266,14 +266,7 @@ class _Problem:
         if ev is None:
             ev = self.evaluate(T, idx, W)[1]
         e, c, front, P_v, P_c, q = ev
-        n = len(idx)
-        # d P_v / d ξ for T <- T·Exp(ξ):  P_v <- Exp(-ξ) P_v = P_v + [P_v]_x ω - v
-        D = np.zeros((n, 3, 6))
-        x, y, z = P_v[:, 0], P_v[:, 1], P_v[:, 2]
-        D[:, 0, 1], D[:, 0, 2] = -z, y
-        D[:, 1, 0], D[:, 1, 2] = z, -x
-        D[:, 2, 0], D[:, 2, 1] = -y, x
-        D[:, 0, 3] = D[:, 1, 4] = D[:, 2, 5] = -1.0
+        D = point_pose_jacobian(P_v)         # d P_v / d ξ for T <- T·Exp(ξ)
         Jp = self.camera.project_jacobian(np.where(front[:, None], P_c, [0, 0, 1.0]))
         A = W @ (Jp @ (self.R_cv @ D))            # whitened d h / d ξ; e = W(z - h) so de/dξ = -A
         k = self.cfg["huber_k"]

@@ -20,7 +20,7 @@ import numpy as np
 __all__ = [
     "Camera", "quat_to_rot", "rot_to_quat", "make_pose", "invert", "transform",
     "pose_to_xyzquat", "xyzquat_to_pose", "rot_x", "rot_y", "rot_z", "yaw_of",
-    "exp_so3", "log_so3", "relative", "interpolate_poses", "CAMERA_FROM_VEHICLE_AXES",
+    "exp_so3", "log_so3", "relative", "interpolate_poses", "point_pose_jacobian", "CAMERA_FROM_VEHICLE_AXES",
 ]
 
 # Rotation that takes camera axes (x right, y down, z forward) to vehicle axes
@@ -156,6 +156,24 @@ def exp_so3(w) -> np.ndarray:
     if th < 1e-12:
         return np.eye(3) + K
     return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th ** 2 * K @ K
+
+
+def point_pose_jacobian(P: np.ndarray) -> np.ndarray:
+    """d P_v / d xi of points seen from a pose perturbed on the right, ``T <- T Exp(xi)``.
+
+    ``P`` (n, 3) are the points in the (vehicle) frame of ``T``; ``xi = (omega, v)`` (GTSAM's order,
+    rotation first).  To first order ``P_v <- Exp(-xi) P_v = P_v + [P_v]_x omega - v``, so the
+    Jacobian is ``[ [P_v]_x | -I ]``, returned as (n, 3, 6).  The solver (eq. 10) and the detector's
+    search windows both linearise projections through it.
+    """
+    P = np.asarray(P, dtype=float).reshape(-1, 3)
+    D = np.zeros((len(P), 3, 6))
+    x, y, z = P[:, 0], P[:, 1], P[:, 2]
+    D[:, 0, 1], D[:, 0, 2] = -z, y
+    D[:, 1, 0], D[:, 1, 2] = z, -x
+    D[:, 2, 0], D[:, 2, 1] = -y, x
+    D[:, 0, 3] = D[:, 1, 4] = D[:, 2, 5] = -1.0
+    return D
 
 
 def log_so3(R) -> np.ndarray:

@@ -10,6 +10,7 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -61,13 +62,20 @@ def main(argv=None) -> int:
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--conditions", default=None, help="comma list (default: all)")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--json", default=None, help="also write the JSON to this file")
     a = p.parse_args(argv)
     res = benchmark(a.preset, a.seed, a.frames, a.conditions.split(",") if a.conditions else None, a.threads)
+    # the table for people on stderr, the JSON alone on stdout (so it can be piped)
     for c, r in res["conditions"].items():
-        print(f"{c:9s} render {r['render_fps']:6.1f} frames/s   with JPEG {r['with_jpeg_fps']:6.1f} frames/s")
+        print(f"{c:9s} render {r['render_fps']:6.1f} frames/s   with JPEG {r['with_jpeg_fps']:6.1f} frames/s",
+              file=sys.stderr)
     print(f"all       render {res['render_fps_mean']:6.1f} frames/s   with JPEG {res['with_jpeg_fps_mean']:6.1f} frames/s "
-          f"({res['size'][0]}x{res['size'][1]}, {res['threads']} thread)")
-    print(json.dumps(res))
+          f"({res['size'][0]}x{res['size'][1]}, {res['threads']} thread)", file=sys.stderr)
+    text = json.dumps(res)
+    if a.json:
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(text + "\n")
+    print(text)
     return 0
 
 
