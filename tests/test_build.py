@@ -98,6 +98,11 @@ def test_build_summary_schema_and_values(world):
     assert summary["places"] == len(manifest["places"]) == 3
     sizes = [(local / p["file"]).stat().st_size for p in manifest["places"]]
     assert summary["bytes_per_place_mean"] == pytest.approx(np.mean(sizes))
+    # the split by part accounts for the whole file (all but the zip's 22-byte end record)
+    parts = summary["bytes_per_place_by_part_mean"]
+    assert set(parts) == {"signatures", "point_features", "keyframe", "meta"}
+    assert all(v > 0 for v in parts.values())
+    assert sum(parts.values()) == pytest.approx(np.mean(sizes), abs=100)
     assert [p["bytes"] for p in manifest["places"]] == sizes
     assert summary["signatures_per_place_mean"] == pytest.approx(np.mean([p["signatures"] for p in manifest["places"]]))
     assert summary["signatures_per_place_mean"] > 0
