@@ -179,7 +179,7 @@ def _check_increasing(path: Path, times: np.ndarray, lines: list[int]) -> None:
     bad = np.nonzero(np.diff(times) <= 0)[0]
     if len(bad):
         k = bad[0] + 1
-        raise DataError(path, f"timestamps must strictly increase: {times[k]!r} after {times[k - 1]!r}", lines[k])
+        raise DataError(path, f"timestamps must strictly increase: {float(times[k])!r} after {float(times[k - 1])!r}", lines[k])
 
 
 def _require(path: Path, table: dict, key: str, kind):
