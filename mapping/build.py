@@ -42,14 +42,13 @@ import numpy as np
 from surveys.geometry import invert
 from surveys.run import SurveyRun, read_run
 from signatures.mining import mine_place
-from signatures.bank import Bank
 from signatures.bank import default_config as bank_default_config
 from signatures.hog import level_scale
 from mapping import georef as georef_mod
 from mapping import places as places_mod
 from mapping.pointmap import build_point_features
 from mapping.refine import Detections, REASONS, refine_landmarks
-from mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
+from mapping.store import MapWriter, PlaceData, atomic_write_bytes, decode_place, encode_keyframe, place_file_name
 
 __all__ = ["default_config", "build_map", "build_place", "run_from_args"]
 
@@ -269,9 +268,7 @@ def _build_place(place, views, negatives, config):
 
 
 def _place_task(place, views, negatives, config):
-    """One unit of parallel work (a module-level function so joblib and Dask can ship it).
-
-    """
+    """One unit of parallel work (a module-level function so joblib and Dask can ship it)."""
     return place.index, build_place(place, views, negatives, config)
 
 
@@ -321,6 +318,15 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     t0 = time.perf_counter()
     bar = tqdm(total=len(places), initial=len(places) - len(todo), desc="build-map places",
                disable=not progress, unit="place")
+
+    def store(idx, data, st):
+        # Stats first, then the place file: killed in between, the place is not built and is rebuilt
+        # (its later stats line wins); the other order would keep the place and lose its stats.
+        _append_stats(out, st)
+        writer.write_place(idx, data)
+        stats[idx] = st
+        bar.update(1)
+
     if scheduler is not None:
         from distributed import Client, as_completed
 
@@ -329,10 +335,7 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
             futures = [client.submit(_place_task, p, v, n, cfg, pure=False) for p, v, n in tasks()]
             for fut in as_completed(futures):
                 idx, (data, st) = fut.result()
-                writer.write_place(idx, data)
-                _append_stats(out, st)
-                stats[idx] = st
-                bar.update(1)
+                store(idx, data, st)
         finally:
             if not isinstance(scheduler, Client):
                 client.close()
@@ -341,10 +344,7 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
 
         par = Parallel(n_jobs=jobs, return_as="generator_unordered", backend="loky" if jobs > 1 else "sequential")
         for idx, (data, st) in par(delayed(_place_task)(p, v, n, cfg) for p, v, n in tasks()):
-            writer.write_place(idx, data)
-            _append_stats(out, st)
-            stats[idx] = st
-            bar.update(1)
+            store(idx, data, st)
     bar.close()
     if places_subset is not None and any(not writer.has_place(p.index) for p in places):
         return {"partial": True, "built": sorted(stats)}
@@ -379,7 +379,7 @@ def _georef_observations(out: Path, places) -> dict:
 
 
 def _append_stats(out: Path, st: dict) -> None:
-    """Journal one place's build stats right after its file is written, so they survive an interruption
+    """Journal one place's build stats just before its file is written, so they survive an interruption
     (a resumed build skips the place and would otherwise lose them); a later line for a place wins."""
     with (Path(out) / "build_stats.jsonl").open("a") as fh:
         fh.write(json.dumps(st) + "\n")
@@ -425,9 +425,7 @@ def _write_summary(out: Path, places, stats: dict, seconds: float) -> dict:
         "rejected": rejected,
         "seconds": seconds,
     }
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(summary, indent=2) + "\n")
-    os.replace(tmp, path)
+    atomic_write_bytes(path, (json.dumps(summary, indent=2) + "\n").encode())
     return summary
 
 

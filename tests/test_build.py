@@ -88,6 +88,29 @@ def test_killed_build_resumes_to_the_same_bytes(world, tmp_path):
     assert not (out / "journal.jsonl").exists()
 
 
+def test_build_stopped_right_after_a_place_file_keeps_its_stats(world, tmp_path, monkeypatch):
+    """The deterministic form of the SIGKILL race above: the build dies just after a place's file is
+    written.  The re-run skips that place, so its stats must already be on disk -- the summary must
+    be the uninterrupted build's."""
+    from mapping import store as store_mod
+    from mapping.build import build_map
+
+    runs, local = world
+    original = store_mod.MapWriter.write_place
+
+    def write_then_die(self, index, data):
+        original(self, index, data)
+        raise KeyboardInterrupt("killed after writing a place")
+
+    monkeypatch.setattr(store_mod.MapWriter, "write_place", write_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        build_map(runs, runs[0], tmp_path / "m", jobs=1, progress=False, config=CONFIG)
+    monkeypatch.setattr(store_mod.MapWriter, "write_place", original)
+    assert len(list((tmp_path / "m" / "places").glob("place_*.npz"))) == 1
+    build_map(runs, runs[0], tmp_path / "m", jobs=1, progress=False, config=CONFIG)
+    _assert_same_map(map_contents(local), map_contents(tmp_path / "m"), "build stopped after a place file")
+
+
 def test_build_summary_schema_and_values(world):
     runs, local = world
     summary = json.loads((local / "build_summary.json").read_text())
