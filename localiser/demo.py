@@ -108,7 +108,7 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     from joblib import Parallel, delayed
 
     from mapping.build import build_map
-    from mapping.store import MapStore
+    from mapping.store import MapStore, atomic_write_bytes
     from surveys.run import read_run
 
     from .experiments import matching_experiment, write_matching
@@ -196,9 +196,7 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
                    "places", "signatures_per_place_mean", "bytes_per_place_mean", "landmark_depth_rel_error_median")},
                "config": cfg, "cpu_count": os.cpu_count(), "jobs": jobs,
                "report": str(index)}
-    tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
-    tmp.replace(out / "summary.json")
+    atomic_write_bytes(out / "summary.json", (json.dumps(summary, indent=2, allow_nan=False) + "\n").encode())
     print()
     print_table(rows)
     print()

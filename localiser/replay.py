@@ -306,7 +306,7 @@ def _realtime(method, loc, run, rec, speed, progress):
                 method.prefetch(prior.next_place)
                 img = run.image(i, gray=not method.color)
                 t0 = time.perf_counter()
-                obs = method.detect(method.prepare(img), prior.place, prior)
+                obs = method.detect(img, prior.place, prior)   # detect() runs prepare() itself
                 solve_box.put((i, t, prior, obs, 1e3 * (time.perf_counter() - t0)))
         except BaseException as exc:  # surfaced on the main thread
             errors.append(exc)
@@ -489,7 +489,6 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     tm = result.timings
     map_errors = {}
     if source == "truth":
-        from surveys.geometry import interpolate_poses
         from .evaluation import summary
 
         tmap = map_relative_truth(store, tp)

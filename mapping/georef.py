@@ -41,8 +41,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from surveys.geometry import Camera, exp_so3, interpolate_poses, invert, make_pose, rot_z, yaw_of
+from surveys.geometry import (Camera, exp_so3, interpolate_poses, invert, make_pose, point_pose_jacobian, rot_z,
+                              yaw_of)
 from mapping.geometry import ideal_camera, ideal_pixels
+from mapping.refine import _huber_weight
 from mapping.refine import default_config as refine_defaults
 
 __all__ = ["default_config", "RelativePose", "solve_relative_pose", "observe_place", "combine_estimates",
@@ -124,15 +126,6 @@ class RelativePose:
         return float(np.sqrt(max(np.linalg.eigvalsh(self.covariance[3:, 3:]).max(), 0.0)))
 
 
-def _skew(P: np.ndarray) -> np.ndarray:
-    """(N,3) -> (N,3,3) cross-product matrices."""
-    S = np.zeros(P.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -P[..., 2], P[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = P[..., 2], -P[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -P[..., 1], P[..., 0]
-    return S
-
-
 class _PnP:
     """Projection residuals of landmarks (place frame) for a vehicle pose ``T_place_vehicle``.
 
@@ -178,13 +171,9 @@ class _PnP:
         """Jacobian of the whitened residuals w.r.t. ``(ω, v)``, (n,2,6)."""
         Pv, Pc = self.camera_points(T, idx)
         J = self.cam.project_jacobian(Pc) @ self.R_cv.T          # d uv / d P_v
-        dP = np.concatenate([_skew(Pv), np.broadcast_to(-np.eye(3), Pv.shape[:1] + (3, 3))], axis=2)
+        dP = point_pose_jacobian(Pv)                              # [P_v]x | -I
         # residual = uv_obs - h: its Jacobian is -J dP
         return -np.einsum("nij,njk->nik", W, J @ dP)
-
-
-def _huber_w(c, k):
-    return np.where(c <= k, 1.0, k / np.maximum(c, 1e-12))
 
 
 def _retract(T, xi):
@@ -204,7 +193,7 @@ def _gauss_newton(prob: _PnP, T, idx, W, cfg):
     lam, f = 1e-4, cost(T)
     for _ in range(int(cfg["max_iterations"])):
         e, c, _ = prob.residuals(T, idx, W)
-        w = _huber_w(c, k)
+        w = _huber_weight(c, k)
         J = prob.jacobian(T, idx, W).reshape(-1, 6)
         ww = np.repeat(w, 2)
         H = J.T @ (J * ww[:, None])
@@ -300,7 +289,7 @@ def solve_relative_pose(uv, landmarks, camera: Camera, T_vehicle_camera, R=None,
     W = prob.whitening(T, cur)
     e, c, _ = prob.residuals(T, cur, W)
     J = prob.jacobian(T, cur, W).reshape(-1, 6)
-    w = np.repeat(_huber_w(c, float(cfg["huber_k"])), 2)
+    w = np.repeat(_huber_weight(c, float(cfg["huber_k"])), 2)
     H = J.T @ (J * w[:, None])
     _, Pc = prob.camera_points(T, cur)
     uvp, _ = prob.cam.project(Pc)
@@ -400,7 +389,7 @@ def _huber_mean(x: np.ndarray, k: float, iterations: int = 50) -> np.ndarray:
     m = np.median(x, axis=0)
     for _ in range(iterations):
         r = np.linalg.norm(x - m, axis=1)
-        w = _huber_w(r, k)
+        w = _huber_weight(r, k)
         m_new = (w[:, None] * x).sum(0) / w.sum()
         if np.allclose(m_new, m, atol=1e-9):
             return m_new

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
-from signatures.hog import level_scale, level_size
+from signatures.hog import level_scale, level_size, window_cell
 
 __all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce"]
 
@@ -392,15 +392,14 @@ def _compact(a: np.ndarray) -> np.ndarray:
 def _cell_ranges(shape, scale_xy, cell: int, fh: int, fw: int, window) -> tuple[int, int, int, int]:
     """Top-left cell ranges [r0, r1] x [c0, c1] (inclusive) of windows whose centre lies in
     ``window`` at a level of ``shape`` (hc, wc) cells and scale ``scale_xy`` (sx, sy); empty ranges
-    have r1 < r0.  (The arithmetic of :meth:`HogPyramid.cell_at`.)"""
+    have r1 < r0."""
     hc, wc = shape
     r0, r1, c0, c1 = 0, hc - fh, 0, wc - fw
     if window is not None:
         x0, y0, x1, y1 = (float(v) for v in window)     # plain floats: this runs per classifier and level
         if not (math.isnan(x0) or math.isnan(y0) or math.isnan(x1) or math.isnan(y1)):
-            sx, sy = scale_xy
-            ra, ca = (y0 + 0.5) * sy / cell - 0.5 * fh, (x0 + 0.5) * sx / cell - 0.5 * fw
-            rb, cb = (y1 + 0.5) * sy / cell - 0.5 * fh, (x1 + 0.5) * sx / cell - 0.5 * fw
+            ra, ca = window_cell(x0, y0, scale_xy, cell, fh, fw)
+            rb, cb = window_cell(x1, y1, scale_xy, cell, fh, fw)
             r0, r1 = max(r0, math.ceil(ra - 1e-9)), min(r1, math.floor(rb + 1e-9))
             c0, c1 = max(c0, math.ceil(ca - 1e-9)), min(c1, math.floor(cb + 1e-9))
     return r0, r1, c0, c1

@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 __all__ = ["default_config", "FEATURE_DIM", "fhog", "HogPyramid", "build_pyramid", "level_scale",
-           "level_size", "resize_area_region", "to_gray_float", "REGION_MARGIN_CELLS"]
+           "level_size", "window_cell", "resize_area_region", "to_gray_float", "REGION_MARGIN_CELLS"]
 
 #: HOG parameters.  Every classifier stores the values it was trained with; detection refuses a
 #: pyramid built with different ones.
@@ -93,6 +93,14 @@ def tune_malloc() -> bool:
 def level_scale(k: int | np.ndarray, scales_per_octave: int) -> float | np.ndarray:
     """Scale of pyramid level ``k`` relative to the input image."""
     return 2.0 ** (-np.asarray(k, dtype=float) / scales_per_octave)
+
+
+def window_cell(x: float, y: float, scale_xy, cell: int, fh: int, fw: int) -> tuple[float, float]:
+    """Fractional top-left cell (row, col) of a window of fh x fw cells centred at input pixel (x, y),
+    on a level of scale ``scale_xy`` (sx, sy) -- also before the level exists (:meth:`Bank.pyramid`
+    sizes the regions it needs with it)."""
+    sx, sy = scale_xy
+    return (y + 0.5) * sy / cell - 0.5 * fh, (x + 0.5) * sx / cell - 0.5 * fw
 
 
 def level_size(image_size: tuple[int, int], k: int, scales_per_octave: int) -> tuple[int, int]:
@@ -344,6 +352,12 @@ def resize_area_region(img: np.ndarray, size: tuple[int, int], rows: tuple[int, 
     return out
 
 
+def _whole_level(img: np.ndarray, size: tuple[int, int], cfg: dict) -> np.ndarray:
+    """FHOG features of the whole level of ``size`` (width, height)."""
+    lvl = img if tuple(size) == img.shape[1::-1] else cv2.resize(img, tuple(size), interpolation=_INTERP)
+    return fhog(lvl, int(cfg["cell"]), float(cfg["clip"]), bool(cfg["color"]))
+
+
 def _level_region(img: np.ndarray, size: tuple[int, int], box, cfg: dict, full_fraction: float):
     """FHOG features of one level computed only around a cell box.
 
@@ -363,8 +377,7 @@ def _level_region(img: np.ndarray, size: tuple[int, int], box, cfg: dict, full_f
     h, w = img.shape[:2]
     upscale = lw > w or lh > h
     if r1 <= r0 or c1 <= c0 or upscale or (a1 - a0) * (b1 - b0) > full_fraction * hc * wc:
-        lvl = img if (lw, lh) == (w, h) else cv2.resize(img, (lw, lh), interpolation=_INTERP)
-        return fhog(lvl, cell, clip, color), None
+        return _whole_level(img, size, cfg), None
     rows, cols = (a0 * cell, a1 * cell), (b0 * cell, b1 * cell)
     if (lw, lh) == (w, h):
         lvl = img[rows[0]:rows[1], cols[0]:cols[1]]
@@ -447,9 +460,7 @@ class HogPyramid:
     def cell_at(self, k: int, x: float, y: float, fh: int, fw: int) -> tuple[float, float]:
         """Inverse of :meth:`window_centre`: fractional top-left cell (row, col) of a window of
         fh x fw cells centred at input pixel (x, y)."""
-        sx, sy = self.scale_xy(k)
-        c = self.cell
-        return (y + 0.5) * sy / c - 0.5 * fh, (x + 0.5) * sx / c - 0.5 * fw
+        return window_cell(x, y, self.scale_xy(k), self.cell, fh, fw)
 
     def matches(self, config: dict) -> bool:
         """True if this pyramid was built with the HOG parameters in ``config``."""
@@ -496,8 +507,7 @@ def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None, re
             continue
         box = None if regions is None else regions.get(k)
         if box is None:
-            lvl = img if (lw, lh) == (w, h) else cv2.resize(img, (lw, lh), interpolation=_INTERP)
-            out[k] = fhog(lvl, cell, float(cfg["clip"]), bool(cfg["color"]))
+            out[k] = _whole_level(img, (lw, lh), cfg)
         else:
             out[k], part = _level_region(img, (lw, lh), box, cfg, full_fraction)
             if part is not None:
