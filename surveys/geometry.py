@@ -20,7 +20,7 @@ import numpy as np
 __all__ = [
     "Camera", "quat_to_rot", "rot_to_quat", "make_pose", "invert", "transform",
     "pose_to_xyzquat", "xyzquat_to_pose", "rot_x", "rot_y", "rot_z", "yaw_of",
-    "exp_so3", "log_so3", "relative", "interpolate_poses", "point_pose_jacobian", "CAMERA_FROM_VEHICLE_AXES",
+    "exp_so3", "log_so3", "nearest_rotation", "relative", "interpolate_poses", "point_pose_jacobian", "CAMERA_FROM_VEHICLE_AXES",
 ]
 
 # Rotation that takes camera axes (x right, y down, z forward) to vehicle axes
@@ -174,6 +174,17 @@ def point_pose_jacobian(P: np.ndarray) -> np.ndarray:
     D[:, 2, 0], D[:, 2, 1] = -y, x
     D[:, 0, 3] = D[:, 1, 4] = D[:, 2, 5] = -1.0
     return D
+
+
+def nearest_rotation(M) -> np.ndarray:
+    """The rotation matrix closest to ``M`` (3,3) in Frobenius norm (SVD projection).
+
+    Calibration files print rotations to a few digits; projecting keeps every pose rigid, so
+    conversions to quaternions and back are lossless.
+    """
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
 
 
 def log_so3(R) -> np.ndarray:

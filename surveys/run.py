@@ -36,7 +36,7 @@ from .errors import DataError
 from .geometry import Camera, interpolate_poses, pose_to_xyzquat, xyzquat_to_pose
 from .tum import read_tum, write_tum
 
-__all__ = ["SurveyRun", "read_run", "write_run", "FORMAT_VERSION", "dump_toml"]
+__all__ = ["SurveyRun", "read_run", "write_run", "FORMAT_VERSION", "dump_toml", "staging_folder", "commit_folder"]
 
 FORMAT_VERSION = 1
 _IMAGE_MAGIC = {b"\xff\xd8\xff": "jpeg", b"\x89PNG": "png"}
@@ -325,20 +325,18 @@ def write_run(run: SurveyRun, folder, images=None, overwrite: bool = False, jpeg
     Parameters
     ----------
     images : iterable of uint8 images in frame order, written to ``run.frame_files`` (names default to
-        ``images/NNNNNN.jpg``). If None, the images are copied from ``run.root``.
+        ``images/NNNNNN.jpg``); an item that is ``bytes`` is an encoded file written as it is (importers
+        keep the source's JPEG/PNG bytes rather than re-encode). If None, the images are copied from
+        ``run.root``.
     overwrite : replace an existing run folder (refused by default: nothing written is lost silently).
     """
     import cv2
 
     folder = Path(folder)
-    if folder.exists() and not overwrite:
-        raise FileExistsError(f"{folder}: survey run already exists (pass overwrite=True to replace it)")
     if images is None and run.root is None:
         raise ValueError("no images given and the run has no source folder to copy them from")
-    tmp = folder.with_name(folder.name + ".tmp")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    (tmp / "images").mkdir(parents=True)
+    tmp = staging_folder(folder, overwrite, "survey run")
+    (tmp / "images").mkdir()
     files = list(run.frame_files) if run.frame_files else [f"images/{i:06d}.jpg" for i in range(len(run.frame_times))]
     if len(files) != len(run.frame_times):
         raise ValueError(f"{len(files)} frame files for {len(run.frame_times)} frame times")
@@ -350,6 +348,10 @@ def write_run(run: SurveyRun, folder, images=None, overwrite: bool = False, jpeg
         n = 0
         for f, img in zip(files, images):
             (tmp / f).parent.mkdir(parents=True, exist_ok=True)
+            if isinstance(img, (bytes, bytearray, memoryview)):  # already encoded: kept bit for bit
+                (tmp / f).write_bytes(img)
+                n += 1
+                continue
             params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if f.lower().endswith((".jpg", ".jpeg")) else []
             if not cv2.imwrite(str(tmp / f), img, params):
                 raise OSError(f"{tmp / f}: could not write image")
@@ -376,7 +378,31 @@ def write_run(run: SurveyRun, folder, images=None, overwrite: bool = False, jpeg
     if run.gps is not None:
         (tmp / "gps.csv").write_text(_csv_text(["timestamp", "x", "y", "z"],
                                                [[f"{r[0]:.9f}"] + [repr(float(v)) for v in r[1:4]] for r in run.gps]))
-    if folder.exists():  # overwrite: move the old one aside first, delete only after the new is in place
+    commit_folder(tmp, folder)
+    return folder
+
+
+def staging_folder(folder, overwrite: bool = False, what: str = "folder") -> Path:
+    """A fresh, empty ``folder.tmp`` to write ``folder``'s content into before :func:`commit_folder`.
+
+    Refuses (FileExistsError) when ``folder`` exists and ``overwrite`` is false: nothing written is
+    lost silently. A ``.tmp`` left by an interrupted write is removed first.
+    """
+    folder = Path(folder)
+    if folder.exists() and not overwrite:
+        raise FileExistsError(f"{folder}: {what} already exists (pass overwrite=True to replace it)")
+    tmp = folder.with_name(folder.name + ".tmp")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    return tmp
+
+
+def commit_folder(tmp, folder) -> None:
+    """Rename the completed ``tmp`` into place as ``folder``; an existing ``folder`` is moved aside
+    first and deleted only after the new one is in place."""
+    tmp, folder = Path(tmp), Path(folder)
+    if folder.exists():
         old = folder.with_name(folder.name + ".old")
         if old.exists():
             shutil.rmtree(old)
@@ -385,4 +411,3 @@ def write_run(run: SurveyRun, folder, images=None, overwrite: bool = False, jpeg
         shutil.rmtree(old)
     else:
         os.replace(tmp, folder)
-    return folder

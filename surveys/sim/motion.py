@@ -59,7 +59,7 @@ from ..geometry import exp_so3, invert, rot_z
 from .noise import smooth_process
 from .route import Route
 
-__all__ = ["Drive", "plan_drive", "odometry", "drift_per_100m", "ins", "gps_fixes", "OdometryModel", "InsModel", "LANE_CENTRE"]
+__all__ = ["Drive", "plan_drive", "odometry", "perturb_odometry", "drift_per_100m", "ins", "gps_fixes", "OdometryModel", "InsModel", "LANE_CENTRE"]
 
 LANE_CENTRE = 1.75  # m left of the centreline (UK: keep left)
 
@@ -239,7 +239,18 @@ def _ou(rng, dist, sigma, corr):
 def odometry(drive: Drive, times: np.ndarray, rng: np.random.Generator, factor: float = 1.0,
              model: OdometryModel = OdometryModel()) -> np.ndarray:
     """VO poses ``T_odom_vehicle`` (N,4,4) at ``times``; the odometry frame is the first pose."""
-    P = drive.pose(times)
+    return perturb_odometry(drive.pose(times), rng, factor, model)
+
+
+def perturb_odometry(P: np.ndarray, rng: np.random.Generator, factor: float = 1.0,
+                     model: OdometryModel = OdometryModel()) -> np.ndarray:
+    """Odometry poses ``T_odom_vehicle`` (N,4,4) drifting from the poses ``P`` (N,4,4) as VO drifts.
+
+    Each increment ``inv(P[k-1]) @ P[k]`` is corrupted by the error model in the module docstring
+    (scaled by ``factor``); the result starts at the identity.  Importers of real data use it too,
+    to turn a clean motion signal into one that drifts like a real odometer.
+    """
+    P = np.asarray(P, dtype=float)
     inc = invert(P[:-1]) @ P[1:]
     step = np.linalg.norm(inc[:, :3, 3], axis=1)
     dist = np.concatenate([[0.0], np.cumsum(step)])
