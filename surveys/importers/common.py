@@ -1,6 +1,7 @@
 """Helpers every importer shares: image checks, gaps, rates, and odometry noise."""
 from __future__ import annotations
 
+from decimal import Decimal
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -8,7 +9,7 @@ import numpy as np
 
 from ..errors import DataError
 
-__all__ = ["checked_image_bytes", "find_gaps", "nominal_rate", "odometry_with_noise", "planar_dead_reckoning"]
+__all__ = ["TIMESTAMP_UNITS", "ticks_to_seconds", "write_imported", "checked_image_bytes", "find_gaps", "nominal_rate", "odometry_with_noise", "planar_dead_reckoning"]
 
 
 def checked_image_bytes(paths: Iterable[Path], size: tuple[int, int] | None = None,
@@ -49,6 +50,15 @@ def checked_image_bytes(paths: Iterable[Path], size: tuple[int, int] | None = No
         if not ok:
             raise OSError(f"{path}: could not re-encode the transformed image")
         yield enc.tobytes()
+
+
+TIMESTAMP_UNITS = {"ns": -9, "us": -6, "ms": -3, "s": 0}  # power of ten of one tick, in seconds
+
+
+def ticks_to_seconds(ticks, unit: str = "ns") -> np.ndarray:
+    """Integer timestamps -> float seconds, correctly rounded (nanoseconds since 1970 exceed float64's 2^53)."""
+    exp = TIMESTAMP_UNITS[unit]
+    return np.array([float(Decimal(int(t)).scaleb(exp)) for t in np.atleast_1d(ticks)], dtype=float)
 
 
 def nominal_rate(times: np.ndarray) -> float:
@@ -116,3 +126,26 @@ def odometry_with_noise(poses: np.ndarray, factor: float = 0.0, seed: int = 0) -
     from ..sim.motion import perturb_odometry
 
     return perturb_odometry(poses, np.random.default_rng(seed), factor)
+
+
+def write_imported(run, sources: list[Path], out, overwrite: bool = False, progress: bool = True,
+                   photometric: str | dict | None = None) -> Path:
+    """Write an imported run (from an importer's ``load_*``) with its source images to ``out``, atomically.
+
+    Each image is decoded once to check it; the source bytes are written unchanged unless
+    ``photometric`` asks for a transform (``"night"``, or a dict of :data:`.photometric.NIGHT` keys),
+    which is recorded in the run's metadata.
+    """
+    from ..run import write_run
+
+    transform = None
+    if photometric is not None:
+        from .photometric import night_transform
+
+        if photometric != "night" and not isinstance(photometric, dict):
+            raise ValueError(f"unknown photometric transform {photometric!r} (night)")
+        transform, desc = night_transform(photometric if isinstance(photometric, dict) else None)
+        run.metadata["photometric_transform"] = desc
+    images = checked_image_bytes(sources, run.camera.size, transform=transform,
+                                 progress=f"import {run.name}" if progress else None)
+    return write_run(run, out, images=images, overwrite=overwrite)

@@ -29,7 +29,6 @@ it drift as a real odometer does.
 from __future__ import annotations
 
 import math
-from decimal import Decimal
 import shutil
 import tomllib
 from pathlib import Path
@@ -38,14 +37,13 @@ import numpy as np
 
 from ..errors import DataError
 from ..geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, pose_to_xyzquat, xyzquat_to_pose
-from ..run import FORMAT_VERSION, SurveyRun, commit_folder, dump_toml, staging_folder, write_run
-from .common import checked_image_bytes, nominal_rate, odometry_with_noise
+from ..run import FORMAT_VERSION, SurveyRun, commit_folder, dump_toml, staging_folder
+from .common import TIMESTAMP_UNITS, nominal_rate, odometry_with_noise, ticks_to_seconds, write_imported
 
 __all__ = ["DEFAULT_CONF", "export_kapture", "load_kapture", "import_kapture", "read_kapture_csv",
            "KAPTURE_VERSION", "TIMESTAMP_UNITS"]
 
 KAPTURE_VERSION = "1.1"
-TIMESTAMP_UNITS = {"ns": -9, "us": -6, "ms": -3, "s": 0}  # power of ten of one tick, in seconds
 DEFAULT_CONF = {
     "camera": None,            # sensor id; None = the only camera
     "timestamp_unit": None,    # ns|us|ms|s; None = scenesig_run.toml's, else ns
@@ -121,12 +119,6 @@ def _ns(t: float) -> int:
     return int(f"{t:.9f}".replace(".", ""))
 
 
-def _seconds(ticks, unit: str) -> np.ndarray:
-    """Integer timestamps -> float seconds, correctly rounded (nanoseconds since 1970 exceed float64's 2^53)."""
-    exp = TIMESTAMP_UNITS[unit]
-    return np.array([float(Decimal(int(t)).scaleb(exp)) for t in np.atleast_1d(ticks)], dtype=float)
-
-
 def _write(path: Path, columns: str, rows) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     lines = [", ".join(str(v) for v in r) for r in rows]
@@ -158,8 +150,7 @@ def _camera_from_params(path: Path, n: int, params: list[str]) -> Camera:
     if model.startswith("SIMPLE") or model == "RADIAL":
         f, cx, cy = nums[2:5]
         fx = fy = f
-        dist = {"SIMPLE_PINHOLE": (), "SIMPLE_RADIAL": (nums[5], 0.0, 0.0, 0.0),
-                "RADIAL": (nums[5], nums[6], 0.0, 0.0)}[model]
+        dist = (nums[5], nums[6] if model == "RADIAL" else 0.0, 0.0, 0.0) if model != "SIMPLE_PINHOLE" else ()
     else:
         fx, fy, cx, cy = nums[2:6]
         dist = tuple(nums[6:11]) if model == "FULL_OPENCV" else tuple(nums[6:10])
@@ -234,7 +225,7 @@ def _timed_poses(path: Path, device: str, unit: str):
     if len(dup):
         raise DataError(path, f"two poses of {device} at timestamp {t[dup[0]]}", lines[order[dup[0] + 1]])
     P = np.asarray(poses)[order]
-    return _seconds(t, unit), invert(P)
+    return ticks_to_seconds(t, unit), invert(P)
 
 
 def load_kapture(root, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]:
@@ -291,7 +282,7 @@ def load_kapture(root, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
         if not src.is_file():
             raise DataError(rec_path, f"image not found: {src}", n)
         sources.append(src)
-    frame_times = _seconds([r[0] for r in frames], unit)
+    frame_times = ticks_to_seconds([r[0] for r in frames], unit)
     # a scenesig export stores images under <camera id>/; other kaptures keep their own tree
     files = [f"images/{p[len(cam_id) + 1:]}" if p.startswith(cam_id + "/") else f"images/{p}" for _, p, _ in frames]
 
@@ -332,13 +323,15 @@ def load_kapture(root, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
         gpath = s / "records_gps_local.txt"
         rows = [(n, f) for n, f in read_kapture_csv(gpath, 5) if f[1] == "gps"]
         if rows:
-            gps = np.column_stack([_seconds([_timestamp(gpath, n, f[0]) for n, f in rows], unit),
+            gps = np.column_stack([ticks_to_seconds([_timestamp(gpath, n, f[0]) for n, f in rows], unit),
                                    [_floats(gpath, n, f[2:5]) for n, f in rows]])
     if (s / "records_pose.txt").is_file():
         truth_t, truth_T = _timed_poses(s / "records_pose.txt", "truth", unit)
 
     metadata = dict(side.get("metadata", {}))
-    metadata.setdefault("source", "kapture")
+    if not side:
+        metadata["source"] = "kapture"
+        metadata["source_path"] = str(root.resolve())
     if odo_source.startswith("groundtruth"):
         metadata["odometry"] = ("derived from the kapture trajectory: NOT an independent sensor"
                                 + (f"; perturbed by the VO error model x{noise} (seed {conf['odometry_seed']})" if noise else ""))
@@ -355,8 +348,8 @@ def load_kapture(root, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
     return run, sources
 
 
-def import_kapture(root, out, conf: dict | None = None, overwrite: bool = False, progress: bool = True) -> Path:
-    """Import one camera of a kapture folder as the survey run ``out`` (written atomically)."""
+def import_kapture(root, out, conf: dict | None = None, overwrite: bool = False, progress: bool = True,
+                   photometric: str | dict | None = None) -> Path:
+    """Import one camera of a kapture folder as the survey run ``out`` (written atomically; see :func:`.common.write_imported`)."""
     run, sources = load_kapture(root, conf)
-    images = checked_image_bytes(sources, run.camera.size, progress=f"import {run.name}" if progress else None)
-    return write_run(run, out, images=images, overwrite=overwrite)
+    return write_imported(run, sources, out, overwrite, progress, photometric)

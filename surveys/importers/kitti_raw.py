@@ -41,8 +41,8 @@ import numpy as np
 
 from ..errors import DataError
 from ..geometry import Camera, invert, make_pose, nearest_rotation, rot_x, rot_y, rot_z
-from ..run import SurveyRun, write_run
-from .common import checked_image_bytes, find_gaps, nominal_rate, odometry_with_noise, planar_dead_reckoning
+from ..run import SurveyRun
+from .common import find_gaps, nominal_rate, odometry_with_noise, planar_dead_reckoning, write_imported
 
 __all__ = ["DEFAULT_CONF", "read_calib", "read_timestamps", "read_oxts", "oxts_poses", "camera_from_calib",
            "load_kitti_raw", "import_kitti_raw", "OXTS_FIELDS", "EARTH_RADIUS"]
@@ -54,8 +54,6 @@ DEFAULT_CONF = {
     "odometry_noise": 0.0,    # factor on the simulator's VO error model; 0 = the clean OXTS signal
     "odometry_seed": 0,
     "gap_factor": 1.5,        # an interval over this many median intervals is a dropped frame
-    "transform": None,        # optional f(index, image) -> image (e.g. photometric.night); re-encodes
-    "transform_name": None,   # what the transform was, for run.toml's metadata
 }
 
 EARTH_RADIUS = 6378137.0  # m, as the KITTI devkit's latToScale / latlonToMercator
@@ -301,8 +299,6 @@ def load_kitti_raw(drive_dir, conf: dict | None = None) -> tuple[SurveyRun, list
         "trailing_timestamps_without_images": int(len(cam_ts) - 1 - last),
         "image_formats": sorted(e.lstrip(".") for e in ext),
     }
-    if conf["transform_name"]:
-        metadata["photometric_transform"] = conf["transform_name"]
     run = SurveyRun(
         name=name, conditions=list(conf["conditions"]), camera=camera, T_vehicle_camera=T_vc,
         rates={"camera_hz": nominal_rate(frame_times), "odometry_hz": nominal_rate(otimes),
@@ -314,15 +310,8 @@ def load_kitti_raw(drive_dir, conf: dict | None = None) -> tuple[SurveyRun, list
     return run, list(images.values())
 
 
-def import_kitti_raw(drive_dir, out, conf: dict | None = None, overwrite: bool = False,
-                     progress: bool = True) -> Path:
-    """Import a KITTI raw drive as the survey run ``out`` (written atomically); returns ``out``.
-
-    Every image is decoded once to check it (size against the calibration) and written as the
-    source's bytes unless ``conf['transform']`` changes it.
-    """
-    conf = {**DEFAULT_CONF, **(conf or {})}
+def import_kitti_raw(drive_dir, out, conf: dict | None = None, overwrite: bool = False, progress: bool = True,
+                     photometric: str | dict | None = None) -> Path:
+    """Import a KITTI raw drive as the survey run ``out`` (written atomically; see :func:`.common.write_imported`)."""
     run, sources = load_kitti_raw(drive_dir, conf)
-    images = checked_image_bytes(sources, run.camera.size, transform=conf["transform"],
-                                 progress=f"import {run.name}" if progress else None)
-    return write_run(run, out, images=images, overwrite=overwrite)
+    return write_imported(run, sources, out, overwrite, progress, photometric)
