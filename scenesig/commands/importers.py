@@ -28,9 +28,9 @@ def _common(p, noise_help: str) -> None:
                    help="condition tags for run.toml, e.g. day,overcast")
     p.add_argument("--odometry-noise", type=_noise, default=0.0, metavar="F", help=noise_help)
     p.add_argument("--odometry-seed", type=int, default=0, help="seed of the odometry drift (default 0)")
-    p.add_argument("--photometric", choices=["night"], default=None,
-                   help="darken the images towards night (a photometric transform of day images, not real "
-                        "night; recorded in run.toml)")
+    p.add_argument("--photometric", choices=["night", "dusk", "haze"], default=None,
+                   help="darken the images (a photometric transform of day images, not real night; recorded "
+                        "in run.toml)")
     p.add_argument("--overwrite", action="store_true", help="replace RUN if it exists (default: refuse)")
 
 

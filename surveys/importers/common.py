@@ -133,18 +133,17 @@ def write_imported(run, sources: list[Path], out, overwrite: bool = False, progr
     """Write an imported run (from an importer's ``load_*``) with its source images to ``out``, atomically.
 
     Each image is decoded once to check it; the source bytes are written unchanged unless
-    ``photometric`` asks for a transform (``"night"``, or a dict of :data:`.photometric.NIGHT` keys),
+    ``photometric`` asks for a transform (a preset of :data:`.photometric.PRESETS`, or a dict of
+    :data:`.photometric.NIGHT` keys),
     which is recorded in the run's metadata.
     """
     from ..run import write_run
 
     transform = None
     if photometric is not None:
-        from .photometric import night_transform
+        from .photometric import photometric_transform
 
-        if photometric != "night" and not isinstance(photometric, dict):
-            raise ValueError(f"unknown photometric transform {photometric!r} (night)")
-        transform, desc = night_transform(photometric if isinstance(photometric, dict) else None)
+        transform, desc = photometric_transform(photometric)
         run.metadata["photometric_transform"] = desc
     images = checked_image_bytes(sources, run.camera.size, transform=transform,
                                  progress=f"import {run.name}" if progress else None)

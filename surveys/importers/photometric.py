@@ -1,20 +1,24 @@
-"""A photometric transform that darkens a day image towards night (for a night-like replay of a real run).
+"""Photometric transforms of day images: a night-like replay of a real run, and two milder looks.
 
-It is **not** real night: a day image has no street lamps, headlight cone, lit windows or black sky,
-so the scene's structure and shadows stay the day's. What it changes is what a camera does in the
-dark, the part that breaks point features: an exposure ~2.7 stops short (``gain``), a tone curve that
-crushes shadows (``gamma`` on the darkened linear intensity), a cold cast (``tint``, B G R gains as
-a tungsten-balanced sensor shows moonlight and sodium-free LED light), long-exposure blur
-(``blur_px``) and the sensor noise of a high gain (``noise`` DN, Gaussian, per pixel and channel),
-then 8-bit quantisation. Deterministic: frame ``i`` uses a generator seeded by ``(seed, i)``.
+``night`` is **not** real night: a day image has no street lamps, headlight cone, lit windows or
+black sky, so the scene's structure and shadows stay the day's. What it changes is what a camera does
+in the dark, the part that hurts point features: an exposure ~2.7 stops short (``gain``), a tone
+curve that crushes shadows (``gamma`` applied to the darkened linear intensity), a cold cast (``tint``,
+B G R gains), long-exposure blur (``blur_px``) and the sensor noise of a high gain (``noise`` DN,
+Gaussian, per pixel and channel), then 8-bit quantisation. ``dusk`` (1.3 stops short) and ``haze``
+(lifted shadows, soft, low contrast) use the same operations with other settings. Deterministic:
+frame ``i`` uses a generator seeded by ``(seed, i)``.
 """
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["NIGHT", "darken", "night_transform"]
+__all__ = ["NIGHT", "DUSK", "HAZE", "PRESETS", "darken", "photometric_transform"]
 
 NIGHT = {"gain": 0.15, "gamma": 1.4, "tint": (1.0, 0.85, 0.7), "blur_px": 0.8, "noise": 3.0, "seed": 0}
+DUSK = {"gain": 0.4, "gamma": 1.2, "tint": (1.0, 0.95, 0.9), "blur_px": 0.5, "noise": 2.0, "seed": 7}
+HAZE = {"gain": 1.0, "gamma": 0.7, "tint": (0.95, 1.0, 1.0), "blur_px": 1.2, "noise": 1.5, "seed": 11}
+PRESETS = {"night": NIGHT, "dusk": DUSK, "haze": HAZE}
 
 
 def darken(image: np.ndarray, index: int = 0, conf: dict | None = None) -> np.ndarray:
@@ -33,13 +37,18 @@ def darken(image: np.ndarray, index: int = 0, conf: dict | None = None) -> np.nd
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
-def night_transform(conf: dict | None = None):
-    """``f(index, image) -> image`` for the importers' ``transform`` conf key, and its description."""
-    c = {**NIGHT, **(conf or {})}
+def photometric_transform(spec: str | dict = "night"):
+    """``(f(index, image) -> image, description)`` for a preset name (:data:`PRESETS`) or a dict over :data:`NIGHT`."""
+    if isinstance(spec, str):
+        if spec not in PRESETS:
+            raise ValueError(f"unknown photometric transform {spec!r} ({', '.join(PRESETS)})")
+        c, label = dict(PRESETS[spec]), spec
+    else:
+        c, label = {**NIGHT, **spec}, "custom"
 
     def f(index: int, image: np.ndarray) -> np.ndarray:
         return darken(image, index, c)
 
-    desc = ("photometric night (day image darkened: gain {gain}, gamma {gamma}, BGR tint {tint}, blur {blur_px} px, "
-            "noise {noise} DN, seed {seed}; not real night)").format(**c)
+    desc = (f"photometric {label} (day image darkened: gain {c['gain']}, gamma {c['gamma']}, BGR tint "
+            f"{tuple(c['tint'])}, blur {c['blur_px']} px, noise {c['noise']} DN, seed {c['seed']}; not real night)")
     return f, desc
