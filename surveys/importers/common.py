@@ -9,7 +9,43 @@ import numpy as np
 
 from ..errors import DataError
 
-__all__ = ["TIMESTAMP_UNITS", "ticks_to_seconds", "write_imported", "checked_image_bytes", "find_gaps", "nominal_rate", "odometry_with_noise", "planar_dead_reckoning"]
+__all__ = ["odometry_note", "odometry_from_groundtruth", "TIMESTAMP_UNITS", "ticks_to_seconds", "write_imported", "read_rows", "numbers", "checked_image_bytes", "find_gaps", "nominal_rate", "odometry_with_noise", "planar_dead_reckoning"]
+
+
+def read_rows(path, min_cols: int, sep: str | None = ",") -> list[tuple[int, list[str]]]:
+    """``[(line number, fields)]`` of a text table; blank and ``#`` lines skipped, fields stripped.
+
+    ``sep`` None splits on whitespace. A row with fewer than ``min_cols`` fields is a DataError naming
+    the line (a truncated line is the usual cause).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "file not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise DataError(path, f"not UTF-8 text ({exc})") from None
+    rows = []
+    for n, raw in enumerate(text.splitlines(), start=1):
+        s = raw.strip()
+        if not s or s.startswith("#"):
+            continue
+        fields = [f.strip() for f in s.split(sep)]
+        if len(fields) < min_cols:
+            raise DataError(path, f"expected at least {min_cols} values, found {len(fields)} -- truncated line?", n)
+        rows.append((n, fields))
+    return rows
+
+
+def numbers(path, line: int, fields: list[str]) -> list[float]:
+    """Finite floats of ``fields`` or a DataError naming the file and line."""
+    try:
+        vals = [float(f) for f in fields]
+    except ValueError:
+        raise DataError(path, f"non-numeric value in {', '.join(fields)!r}", line) from None
+    if not all(np.isfinite(vals)):
+        raise DataError(path, "NaN or infinite value", line)
+    return vals
 
 
 def checked_image_bytes(paths: Iterable[Path], size: tuple[int, int] | None = None,
@@ -148,3 +184,18 @@ def write_imported(run, sources: list[Path], out, overwrite: bool = False, progr
     images = checked_image_bytes(sources, run.camera.size, transform=transform,
                                  progress=f"import {run.name}" if progress else None)
     return write_run(run, out, images=images, overwrite=overwrite)
+
+
+def odometry_note(source: str, conf: dict) -> dict:
+    """The run metadata that says where the odometry came from and how it was perturbed."""
+    noise = float(conf["odometry_noise"])
+    text = source + (f"; perturbed by the VO error model x{noise} (seed {conf['odometry_seed']})" if noise else "")
+    return {"odometry": text, "odometry_noise": noise, "odometry_seed": int(conf["odometry_seed"])}
+
+
+def odometry_from_groundtruth(poses: np.ndarray, conf: dict, what: str = "the ground truth"):
+    """(odometry poses, ``odometry_source``, metadata) for formats without an odometer: the ground truth,
+    drifted by ``conf['odometry_noise']`` -- stated as not independent in both the source and the note."""
+    noise = float(conf["odometry_noise"])
+    odo = odometry_with_noise(poses, noise, int(conf["odometry_seed"]))
+    return odo, "groundtruth" + ("+noise" if noise else ""), odometry_note(f"{what} itself: NOT an independent sensor", conf)

@@ -30,7 +30,7 @@ import numpy as np
 from ..errors import DataError
 from ..geometry import Camera, nearest_rotation, xyzquat_to_pose
 from ..run import SurveyRun
-from .common import find_gaps, nominal_rate, odometry_with_noise, ticks_to_seconds, write_imported
+from .common import find_gaps, nominal_rate, numbers, odometry_from_groundtruth, read_rows, ticks_to_seconds, write_imported
 
 __all__ = ["DEFAULT_CONF", "read_sensor_yaml", "read_asl_csv", "load_euroc", "import_euroc"]
 
@@ -79,18 +79,8 @@ def read_sensor_yaml(path) -> tuple[Camera, np.ndarray]:
 
 def read_asl_csv(path, min_cols: int) -> tuple[np.ndarray, list[list[str]], list[int]]:
     """An ASL ``data.csv`` -> (integer nanosecond timestamps, the other fields, line numbers)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(path, "file not found")
     ticks, rows, lines = [], [], []
-    for n, raw in enumerate(path.read_text(errors="replace").splitlines(), start=1):
-        s = raw.strip()
-        if not s or s.startswith("#"):
-            continue
-        parts = [p.strip() for p in s.split(",")]
-        if len(parts) < min_cols:
-            raise DataError(path, f"expected at least {min_cols} comma-separated values, found {len(parts)}"
-                                  " -- truncated line?", n)
+    for n, parts in read_rows(path, min_cols):
         try:
             t = int(parts[0])
         except ValueError:
@@ -109,13 +99,8 @@ def _groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     ticks, rows, lines = read_asl_csv(path, 8)
     vals = np.empty((len(rows), 7))
     for i, (r, n) in enumerate(zip(rows, lines)):
-        try:
-            px, py, pz, qw, qx, qy, qz = (float(v) for v in r[:7])
-        except ValueError:
-            raise DataError(path, "non-numeric value", n) from None
+        px, py, pz, qw, qx, qy, qz = numbers(path, n, r[:7])
         vals[i] = (px, py, pz, qx, qy, qz, qw)
-        if not np.all(np.isfinite(vals[i])):
-            raise DataError(path, "NaN or infinite value", n)
         if np.linalg.norm(vals[i, 3:]) < 1e-9:
             raise DataError(path, "zero quaternion", n)
     return ticks_to_seconds(ticks, "ns"), xyzquat_to_pose(vals).reshape(-1, 4, 4)
@@ -145,13 +130,10 @@ def load_euroc(folder, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
                 raise DataError(cam_dir / "data.csv", f"image not found: {src}", n)
             sources.append(src)
     frame_times = times[inside]
-    noise = float(conf["odometry_noise"])
+    odo, odo_source, note = odometry_from_groundtruth(T_wv, conf)
     metadata = {
         "source": "euroc", "source_path": str(folder.resolve()), "euroc_camera": int(conf["camera"]),
-        "vehicle_frame": "EuRoC body (IMU) frame, not x-forward/z-up",
-        "odometry": "the ground truth itself: NOT an independent sensor"
-                    + (f"; perturbed by the VO error model x{noise} (seed {conf['odometry_seed']})" if noise else ""),
-        "odometry_noise": noise, "odometry_seed": int(conf["odometry_seed"]),
+        "vehicle_frame": "EuRoC body (IMU) frame, not x-forward/z-up", **note,
         "frames_outside_groundtruth": int((~inside).sum()),
         "gaps": find_gaps(frame_times, conf["gap_factor"]),
         "groundtruth_gaps": find_gaps(gt_t, conf["gap_factor"]),
@@ -161,8 +143,8 @@ def load_euroc(folder, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
         camera=camera, T_vehicle_camera=T_vc,
         rates={"camera_hz": nominal_rate(frame_times), "odometry_hz": nominal_rate(gt_t), "ins_hz": nominal_rate(gt_t)},
         frame_times=frame_times, frame_files=[f"images/{Path(r[0]).name}" for ok, r in zip(inside, rows) if ok],
-        odometry_times=gt_t, odometry_poses=odometry_with_noise(T_wv, noise, int(conf["odometry_seed"])),
-        odometry_source="groundtruth" + ("+noise" if noise else ""), groundtruth_times=gt_t, groundtruth_poses=T_wv,
+        odometry_times=gt_t, odometry_poses=odo, odometry_source=odo_source, groundtruth_times=gt_t,
+        groundtruth_poses=T_wv,
         metadata=metadata,
     )
     return run, sources

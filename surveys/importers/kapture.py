@@ -38,7 +38,7 @@ import numpy as np
 from ..errors import DataError
 from ..geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, pose_to_xyzquat, xyzquat_to_pose
 from ..run import FORMAT_VERSION, SurveyRun, commit_folder, dump_toml, staging_folder
-from .common import TIMESTAMP_UNITS, nominal_rate, odometry_with_noise, ticks_to_seconds, write_imported
+from .common import TIMESTAMP_UNITS, nominal_rate, numbers, odometry_from_groundtruth, read_rows, ticks_to_seconds, write_imported
 
 __all__ = ["DEFAULT_CONF", "export_kapture", "load_kapture", "import_kapture", "read_kapture_csv",
            "KAPTURE_VERSION", "TIMESTAMP_UNITS"]
@@ -59,39 +59,14 @@ _SIDE = "scenesig_run.toml"
 
 # --------------------------------------------------------------------------------------- text files
 def read_kapture_csv(path, min_cols: int) -> list[tuple[int, list[str]]]:
-    """``[(line number, fields)]`` of a kapture text file (comments and blank lines skipped)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(path, "file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise DataError(path, f"not UTF-8 text ({exc})") from None
-    rows = []
-    for n, raw in enumerate(text.splitlines(), start=1):
-        s = raw.strip()
-        if n == 1 and s.startswith("# kapture format:"):
-            version = s.split(":", 1)[1].strip()
-            if not version.startswith("1."):
-                raise DataError(path, f"kapture format {version} not supported (this reads 1.x)", n)
-            continue
-        if not s or s.startswith("#"):
-            continue
-        fields = [f.strip() for f in s.split(",")]
-        if len(fields) < min_cols:
-            raise DataError(path, f"expected at least {min_cols} comma-separated values, found {len(fields)}", n)
-        rows.append((n, fields))
+    """``[(line number, fields)]`` of a kapture text file (comments and blank lines skipped; version checked)."""
+    rows = read_rows(path, min_cols)
+    first = Path(path).read_text(encoding="utf-8").split("\n", 1)[0].strip()
+    if first.startswith("# kapture format:"):
+        version = first.split(":", 1)[1].strip()
+        if not version.startswith("1."):
+            raise DataError(path, f"kapture format {version} not supported (this reads 1.x)", 1)
     return rows
-
-
-def _floats(path: Path, n: int, fields: list[str]) -> list[float]:
-    try:
-        vals = [float(f) for f in fields]
-    except ValueError:
-        raise DataError(path, f"non-numeric value in {', '.join(fields)!r}", n) from None
-    if not all(math.isfinite(v) for v in vals):
-        raise DataError(path, "NaN or infinite value", n)
-    return vals
 
 
 def _timestamp(path: Path, n: int, field: str) -> int:
@@ -103,7 +78,7 @@ def _timestamp(path: Path, n: int, field: str) -> int:
 
 def _pose(path: Path, n: int, fields: list[str]) -> np.ndarray:
     """``qw, qx, qy, qz, tx, ty, tz`` (world to device) -> the 4x4 ``T_device_world``."""
-    qw, qx, qy, qz, tx, ty, tz = _floats(path, n, fields)
+    qw, qx, qy, qz, tx, ty, tz = numbers(path, n, fields)
     if math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz) < 1e-9:
         raise DataError(path, "zero quaternion", n)
     return xyzquat_to_pose([tx, ty, tz, qx, qy, qz, qw])
@@ -139,7 +114,7 @@ def _camera_params(cam: Camera) -> list:
 
 def _camera_from_params(path: Path, n: int, params: list[str]) -> Camera:
     model, vals = params[0], params[1:]
-    nums = _floats(path, n, vals)
+    nums = numbers(path, n, vals)
     need = {"SIMPLE_PINHOLE": 5, "PINHOLE": 6, "SIMPLE_RADIAL": 6, "RADIAL": 7, "OPENCV": 10, "FULL_OPENCV": 14}
     if model not in need:
         raise DataError(path, f"camera model {model} not supported (PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, "
@@ -312,10 +287,10 @@ def load_kapture(root, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
     odo_t = None
     if odo_path.is_file() and "odometry" in sensors:
         odo_t, odo_P = _timed_poses(odo_path, "odometry", unit)
-    noise = float(conf["odometry_noise"])
+    note = {}
     if odo_t is None:
-        odo_t, odo_P = gt_t, odometry_with_noise(gt_T, noise, int(conf["odometry_seed"]))
-        odo_source = "groundtruth" + ("+noise" if noise else "")
+        odo_P, odo_source, note = odometry_from_groundtruth(gt_T, conf, "the kapture trajectory")
+        odo_t = gt_t
     else:
         odo_source = sensors["odometry"][1][1] or "odometry"
     gps = truth_t = truth_T = None
@@ -324,7 +299,7 @@ def load_kapture(root, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
         rows = [(n, f) for n, f in read_kapture_csv(gpath, 5) if f[1] == "gps"]
         if rows:
             gps = np.column_stack([ticks_to_seconds([_timestamp(gpath, n, f[0]) for n, f in rows], unit),
-                                   [_floats(gpath, n, f[2:5]) for n, f in rows]])
+                                   [numbers(gpath, n, f[2:5]) for n, f in rows]])
     if (s / "records_pose.txt").is_file():
         truth_t, truth_T = _timed_poses(s / "records_pose.txt", "truth", unit)
 
@@ -332,9 +307,7 @@ def load_kapture(root, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
     if not side:
         metadata["source"] = "kapture"
         metadata["source_path"] = str(root.resolve())
-    if odo_source.startswith("groundtruth"):
-        metadata["odometry"] = ("derived from the kapture trajectory: NOT an independent sensor"
-                                + (f"; perturbed by the VO error model x{noise} (seed {conf['odometry_seed']})" if noise else ""))
+    metadata.update(note)
     rates = side.get("rates") or {"camera_hz": nominal_rate(frame_times), "odometry_hz": nominal_rate(odo_t),
                                   "ins_hz": nominal_rate(gt_t)}
     conditions = conf["conditions"] if conf["conditions"] is not None else side.get("conditions", [])

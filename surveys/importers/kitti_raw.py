@@ -42,7 +42,8 @@ import numpy as np
 from ..errors import DataError
 from ..geometry import Camera, invert, make_pose, nearest_rotation, rot_x, rot_y, rot_z
 from ..run import SurveyRun
-from .common import find_gaps, nominal_rate, odometry_with_noise, planar_dead_reckoning, write_imported
+from .common import (find_gaps, nominal_rate, numbers, odometry_note, odometry_with_noise, planar_dead_reckoning,
+                     write_imported)
 
 __all__ = ["DEFAULT_CONF", "read_calib", "read_timestamps", "read_oxts", "oxts_poses", "camera_from_calib",
            "load_kitti_raw", "import_kitti_raw", "OXTS_FIELDS", "EARTH_RADIUS"]
@@ -80,13 +81,7 @@ def read_calib(path) -> dict[str, np.ndarray]:
         key = key.strip()
         if key == "calib_time":
             continue
-        try:
-            vals = np.array([float(v) for v in rest.split()], dtype=float)
-        except ValueError:
-            raise DataError(path, f"non-numeric value for {key}", n) from None
-        if not np.all(np.isfinite(vals)):
-            raise DataError(path, f"NaN or infinite value for {key}", n)
-        out[key] = vals
+        out[key] = np.array(numbers(path, n, rest.split()), dtype=float)
         out.setdefault("_lines", {})[key] = n
     return out
 
@@ -151,12 +146,7 @@ def read_oxts(paths) -> np.ndarray:
         if len(parts) != len(OXTS_FIELDS):
             raise DataError(p, f"expected {len(OXTS_FIELDS)} values (see oxts/dataformat.txt), found {len(parts)}"
                                " -- truncated line?", 1)
-        try:
-            out[i] = [float(v) for v in parts]
-        except ValueError:
-            raise DataError(p, "non-numeric value", 1) from None
-        if not np.all(np.isfinite(out[i])):
-            raise DataError(p, "NaN or infinite value", 1)
+        out[i] = numbers(p, 1, parts)
     return out
 
 
@@ -291,10 +281,8 @@ def load_kitti_raw(drive_dir, conf: dict | None = None) -> tuple[SurveyRun, list
     metadata = {
         "source": "kitti_raw", "source_path": str(drive.resolve()), "kitti_camera": c,
         "world_frame": frame,
-        "odometry": ("OXTS forward/leftward velocity and yaw rate integrated in the plane; NOT independent "
-                     "of the INS" + (f"; perturbed by the VO error model x{noise} (seed {conf['odometry_seed']})"
-                                     if noise else "")),
-        "odometry_noise": noise, "odometry_seed": int(conf["odometry_seed"]),
+        **odometry_note("OXTS forward/leftward velocity and yaw rate integrated in the plane; NOT independent "
+                        "of the INS", conf),
         "dropped_frames": len(missing_idx), "gaps": gaps,
         "trailing_timestamps_without_images": int(len(cam_ts) - 1 - last),
         "image_formats": sorted(e.lstrip(".") for e in ext),

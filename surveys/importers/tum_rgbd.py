@@ -32,7 +32,7 @@ from ..errors import DataError
 from ..geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose
 from ..run import SurveyRun
 from ..tum import read_tum
-from .common import find_gaps, nominal_rate, odometry_with_noise, write_imported
+from .common import find_gaps, nominal_rate, numbers, odometry_from_groundtruth, read_rows, write_imported
 
 __all__ = ["DEFAULT_CONF", "INTRINSICS", "load_tum_rgbd", "import_tum_rgbd", "read_image_list", "intrinsics_for"]
 
@@ -55,23 +55,11 @@ DEFAULT_CONF = {
 
 def read_image_list(path) -> tuple[np.ndarray, list[str], list[int]]:
     """``rgb.txt`` -> (times, file names, line numbers); comments skipped, times strictly increasing."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(path, "file not found")
     times, files, lines = [], [], []
-    for n, raw in enumerate(path.read_text(errors="replace").splitlines(), start=1):
-        s = raw.strip()
-        if not s or s.startswith("#"):
-            continue
-        parts = s.split()
+    for n, parts in read_rows(path, 2, sep=None):
         if len(parts) != 2:
-            raise DataError(path, f"expected 'timestamp filename', found {s!r}", n)
-        try:
-            t = float(parts[0])
-        except ValueError:
-            raise DataError(path, f"not a timestamp: {parts[0]!r}", n) from None
-        if not np.isfinite(t):
-            raise DataError(path, "NaN or infinite timestamp", n)
+            raise DataError(path, f"expected 'timestamp filename', found {' '.join(parts)!r}", n)
+        t = numbers(path, n, parts[:1])[0]
         if times and t <= times[-1]:
             raise DataError(path, f"timestamps must strictly increase: {t!r} after {times[-1]!r}", n)
         times.append(t)
@@ -122,13 +110,9 @@ def load_tum_rgbd(folder, conf: dict | None = None) -> tuple[SurveyRun, list[Pat
     frame_times = times[inside]
     T_vc = make_pose(CAMERA_FROM_VEHICLE_AXES)
     T_wv = T_wc @ invert(T_vc)
-    noise = float(conf["odometry_noise"])
-    odo = odometry_with_noise(T_wv, noise, int(conf["odometry_seed"]))
+    odo, odo_source, note = odometry_from_groundtruth(T_wv, conf)
     metadata = {
-        "source": "tum_rgbd", "source_path": str(folder.resolve()),
-        "odometry": "the ground truth itself: NOT an independent sensor"
-                    + (f"; perturbed by the VO error model x{noise} (seed {conf['odometry_seed']})" if noise else ""),
-        "odometry_noise": noise, "odometry_seed": int(conf["odometry_seed"]),
+        "source": "tum_rgbd", "source_path": str(folder.resolve()), **note,
         "frames_outside_groundtruth": int((~inside).sum()),
         "gaps": find_gaps(frame_times, conf["gap_factor"]),
         "groundtruth_gaps": find_gaps(gt_t, conf["gap_factor"]),
@@ -137,7 +121,7 @@ def load_tum_rgbd(folder, conf: dict | None = None) -> tuple[SurveyRun, list[Pat
         name=conf["name"] or folder.name, conditions=list(conf["conditions"]), camera=camera, T_vehicle_camera=T_vc,
         rates={"camera_hz": nominal_rate(frame_times), "odometry_hz": nominal_rate(gt_t), "ins_hz": nominal_rate(gt_t)},
         frame_times=frame_times, frame_files=[f"images/{Path(f).name}" for f in np.array(files)[inside]],
-        odometry_times=gt_t, odometry_poses=odo, odometry_source="groundtruth" + ("+noise" if noise else ""),
+        odometry_times=gt_t, odometry_poses=odo, odometry_source=odo_source,
         groundtruth_times=gt_t, groundtruth_poses=T_wv, metadata=metadata,
     )
     return run, sources
