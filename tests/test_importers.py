@@ -397,17 +397,9 @@ def test_euroc_import(tmp_path):
 
 # --------------------------------------------------------------------------------------- command line
 def _cli(argv):
-    import argparse
+    from scenesig import cli
 
-    from scenesig.commands import importers
-
-    ap = argparse.ArgumentParser(prog="scenesig")
-    sub = ap.add_subparsers()
-    groups = {"": sub, "import": sub.add_parser("import").add_subparsers(),
-              "export": sub.add_parser("export").add_subparsers()}
-    importers.register(groups)
-    args = ap.parse_args(argv)
-    return args._run(args)
+    return cli.main(argv)
 
 
 def test_cli_import_export(tmp_path, capsys):
@@ -417,8 +409,10 @@ def test_cli_import_export(tmp_path, capsys):
     assert '"frames": 6' in capsys.readouterr().out
     run = read_run(tmp_path / "run")
     assert run.conditions == ["day", "sunny"] and run.metadata["odometry_noise"] == 1.0
-    with pytest.raises(DataError, match="already exists"):
-        _cli(["import", "kitti-raw", str(drive), "--out", str(tmp_path / "run")])
+    assert _cli(["import", "kitti-raw", str(drive), "--out", str(tmp_path / "run")]) == 2
+    assert "already exists; pass --overwrite" in capsys.readouterr().err
+    assert _cli(["import", "kitti-raw", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x")]) == 2
+    assert "nowhere: KITTI raw drive folder not found" in capsys.readouterr().err
     assert _cli(["export", "kapture", str(tmp_path / "run"), "--out", str(tmp_path / "k")]) == 0
     assert _cli(["import", "kapture", str(tmp_path / "k"), "--out", str(tmp_path / "back")]) == 0
     _same_run(run, read_run(tmp_path / "back"))
@@ -429,7 +423,7 @@ def test_cli_import_export(tmp_path, capsys):
 def test_kitti_end_to_end(kitti_drive, tmp_path):
     """Map from camera 2 (one run), camera 3 and a darkened camera 3 replayed: the issue's targets."""
     out = tmp_path / "kitti_drive.json"
-    proc = subprocess.run([sys.executable, "-m", "benchmarks.kitti_drive", str(kitti_drive), "--work",
+    proc = subprocess.run([sys.executable, "-m", "scenesig.cli", "bench", "kitti-drive", str(kitti_drive), "--work",
                            str(tmp_path / "work"), "--json", str(out)], cwd=ROOT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     import json

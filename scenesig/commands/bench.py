@@ -12,6 +12,8 @@ import importlib
 BENCHMARKS = {
     "heading": ("heading", "GRIEF heading-estimation benchmark (error rate at 20 px)."),
     "speed": ("speed", "Training and detection speed on simulated images."),
+    "kitti-import": ("kitti_import", "KITTI raw import speed, frames/s on one core (decode + write)."),
+    "kitti-drive": ("kitti_drive", "KITTI snippet end to end: camera-2 map, camera 3 and darkened camera 3 localised."),
 }
 
 
