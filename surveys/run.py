@@ -27,6 +27,7 @@ import math
 import os
 import shutil
 import tomllib
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,7 +37,7 @@ from .errors import DataError
 from .geometry import Camera, interpolate_poses, pose_to_xyzquat, xyzquat_to_pose
 from .tum import read_tum, write_tum
 
-__all__ = ["SurveyRun", "read_run", "write_run", "FORMAT_VERSION", "dump_toml", "staging_folder", "commit_folder"]
+__all__ = ["SurveyRun", "read_run", "write_run", "FORMAT_VERSION", "dump_toml", "staged_folder"]
 
 FORMAT_VERSION = 1
 _IMAGE_MAGIC = {b"\xff\xd8\xff": "jpeg", b"\x89PNG": "png"}
@@ -335,58 +336,60 @@ def write_run(run: SurveyRun, folder, images=None, overwrite: bool = False, jpeg
     folder = Path(folder)
     if images is None and run.root is None:
         raise ValueError("no images given and the run has no source folder to copy them from")
-    tmp = staging_folder(folder, overwrite, "survey run")
-    (tmp / "images").mkdir()
-    files = list(run.frame_files) if run.frame_files else [f"images/{i:06d}.jpg" for i in range(len(run.frame_times))]
-    if len(files) != len(run.frame_times):
-        raise ValueError(f"{len(files)} frame files for {len(run.frame_times)} frame times")
-    if images is None:
-        for f in files:
-            (tmp / f).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(run.root / f, tmp / f)
-    else:
-        n = 0
-        for f, img in zip(files, images):
-            (tmp / f).parent.mkdir(parents=True, exist_ok=True)
-            if isinstance(img, (bytes, bytearray, memoryview)):  # already encoded: kept bit for bit
-                (tmp / f).write_bytes(img)
+    with staged_folder(folder, overwrite, "survey run") as tmp:
+        (tmp / "images").mkdir()
+        files = list(run.frame_files) if run.frame_files else [f"images/{i:06d}.jpg" for i in range(len(run.frame_times))]
+        if len(files) != len(run.frame_times):
+            raise ValueError(f"{len(files)} frame files for {len(run.frame_times)} frame times")
+        if images is None:
+            for f in files:
+                (tmp / f).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(run.root / f, tmp / f)
+        else:
+            n = 0
+            for f, img in zip(files, images):
+                (tmp / f).parent.mkdir(parents=True, exist_ok=True)
+                if isinstance(img, (bytes, bytearray, memoryview)):  # already encoded: kept bit for bit
+                    (tmp / f).write_bytes(img)
+                    n += 1
+                    continue
+                params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if f.lower().endswith((".jpg", ".jpeg")) else []
+                if not cv2.imwrite(str(tmp / f), img, params):
+                    raise OSError(f"{tmp / f}: could not write image")
                 n += 1
-                continue
-            params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if f.lower().endswith((".jpg", ".jpeg")) else []
-            if not cv2.imwrite(str(tmp / f), img, params):
-                raise OSError(f"{tmp / f}: could not write image")
-            n += 1
-        if n != len(files):
-            raise ValueError(f"got {n} images for {len(files)} frames")
-    meta = {
-        "format_version": FORMAT_VERSION, "name": run.name, "conditions": list(run.conditions),
-        "odometry_source": run.odometry_source, "camera": run.camera.to_dict(),
-        "extrinsic": {"T_vehicle_camera": np.asarray(run.T_vehicle_camera, float).tolist()},
-        "rates": dict(run.rates), "metadata": dict(run.metadata),
-    }
-    (tmp / "run.toml").write_text(dump_toml(meta))
-    (tmp / "frames.csv").write_text(_csv_text(["timestamp", "file"],
-                                              [[f"{t:.9f}", f] for t, f in zip(run.frame_times, files)]))
-    odo = pose_to_xyzquat(run.odometry_poses).reshape(-1, 7)
-    (tmp / "odometry.csv").write_text(_csv_text(
-        ["timestamp", "x", "y", "z", "qx", "qy", "qz", "qw"],
-        [[f"{t:.9f}"] + [repr(float(v)) for v in r] for t, r in zip(run.odometry_times, odo)]))
-    if run.groundtruth_times is not None:
-        write_tum(tmp / "groundtruth.tum", run.groundtruth_times, run.groundtruth_poses)
-    if run.truth_times is not None:
-        write_tum(tmp / "truth.tum", run.truth_times, run.truth_poses)
-    if run.gps is not None:
-        (tmp / "gps.csv").write_text(_csv_text(["timestamp", "x", "y", "z"],
-                                               [[f"{r[0]:.9f}"] + [repr(float(v)) for v in r[1:4]] for r in run.gps]))
-    commit_folder(tmp, folder)
+            if n != len(files):
+                raise ValueError(f"got {n} images for {len(files)} frames")
+        meta = {
+            "format_version": FORMAT_VERSION, "name": run.name, "conditions": list(run.conditions),
+            "odometry_source": run.odometry_source, "camera": run.camera.to_dict(),
+            "extrinsic": {"T_vehicle_camera": np.asarray(run.T_vehicle_camera, float).tolist()},
+            "rates": dict(run.rates), "metadata": dict(run.metadata),
+        }
+        (tmp / "run.toml").write_text(dump_toml(meta))
+        (tmp / "frames.csv").write_text(_csv_text(["timestamp", "file"],
+                                                  [[f"{t:.9f}", f] for t, f in zip(run.frame_times, files)]))
+        odo = pose_to_xyzquat(run.odometry_poses).reshape(-1, 7)
+        (tmp / "odometry.csv").write_text(_csv_text(
+            ["timestamp", "x", "y", "z", "qx", "qy", "qz", "qw"],
+            [[f"{t:.9f}"] + [repr(float(v)) for v in r] for t, r in zip(run.odometry_times, odo)]))
+        if run.groundtruth_times is not None:
+            write_tum(tmp / "groundtruth.tum", run.groundtruth_times, run.groundtruth_poses)
+        if run.truth_times is not None:
+            write_tum(tmp / "truth.tum", run.truth_times, run.truth_poses)
+        if run.gps is not None:
+            (tmp / "gps.csv").write_text(_csv_text(["timestamp", "x", "y", "z"],
+                                                   [[f"{r[0]:.9f}"] + [repr(float(v)) for v in r[1:4]] for r in run.gps]))
     return folder
 
 
-def staging_folder(folder, overwrite: bool = False, what: str = "folder") -> Path:
-    """A fresh, empty ``folder.tmp`` to write ``folder``'s content into before :func:`commit_folder`.
+@contextmanager
+def staged_folder(folder, overwrite: bool = False, what: str = "folder"):
+    """Write a folder atomically: yields a fresh ``folder.tmp`` to fill, renamed to ``folder`` on success.
 
     Refuses (FileExistsError) when ``folder`` exists and ``overwrite`` is false: nothing written is
-    lost silently. A ``.tmp`` left by an interrupted write is removed first.
+    lost silently. On an exception the partial ``.tmp`` is removed and ``folder`` (new or old) is
+    untouched; an old ``folder`` is moved aside and deleted only after the new one is in place. A
+    ``.tmp`` left by a killed process is removed on the next write.
     """
     folder = Path(folder)
     if folder.exists() and not overwrite:
@@ -395,13 +398,11 @@ def staging_folder(folder, overwrite: bool = False, what: str = "folder") -> Pat
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    return tmp
-
-
-def commit_folder(tmp, folder) -> None:
-    """Rename the completed ``tmp`` into place as ``folder``; an existing ``folder`` is moved aside
-    first and deleted only after the new one is in place."""
-    tmp, folder = Path(tmp), Path(folder)
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     if folder.exists():
         old = folder.with_name(folder.name + ".old")
         if old.exists():

@@ -138,6 +138,7 @@ def test_failed_import_leaves_nothing_and_keeps_the_old_run(tmp_path):
     with pytest.raises(DataError, match="0000000004.png: not a decodable"):
         kitti_raw.import_kitti_raw(drive, out, {"camera": 2, "name": "other"}, overwrite=True, progress=False)
     assert (out / "frames.csv").read_bytes() == before and read_run(out).name == "drive_cam2"
+    assert not out.with_name("run.tmp").exists() and not out.with_name("run.old").exists()
     with pytest.raises(FileExistsError):
         kitti_raw.import_kitti_raw(drive, out, {"camera": 3}, progress=False)
 

@@ -9,7 +9,9 @@ import numpy as np
 
 from ..errors import DataError
 
-__all__ = ["odometry_note", "odometry_from_groundtruth", "TIMESTAMP_UNITS", "ticks_to_seconds", "write_imported", "read_rows", "numbers", "checked_image_bytes", "find_gaps", "nominal_rate", "odometry_with_noise", "planar_dead_reckoning"]
+__all__ = ["TIMESTAMP_UNITS", "ticks_to_seconds", "read_rows", "numbers", "checked_image_bytes", "find_gaps",
+           "nominal_rate", "planar_dead_reckoning", "odometry_with_noise", "odometry_note",
+           "odometry_from_groundtruth", "write_imported"]
 
 
 def read_rows(path, min_cols: int, sep: str | None = ",") -> list[tuple[int, list[str]]]:
@@ -141,8 +143,8 @@ def planar_dead_reckoning(times: np.ndarray, v_forward: np.ndarray, v_left: np.n
         c, s = np.cos(th), np.sin(th)
         x, y = x + c * dx[k] - s * dy[k], y + s * dx[k] + c * dy[k]
         th += dth[k]
-        out[k + 1, 0, 0], out[k + 1, 0, 1], out[k + 1, 1, 0], out[k + 1, 1, 1] = np.cos(th), -np.sin(th), np.sin(th), np.cos(th)
-        out[k + 1, 0, 3], out[k + 1, 1, 3] = x, y
+        out[k + 1, :2, :2] = [[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]]
+        out[k + 1, :2, 3] = x, y
     return out
 
 

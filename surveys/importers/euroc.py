@@ -30,7 +30,8 @@ import numpy as np
 from ..errors import DataError
 from ..geometry import Camera, nearest_rotation, xyzquat_to_pose
 from ..run import SurveyRun
-from .common import find_gaps, nominal_rate, numbers, odometry_from_groundtruth, read_rows, ticks_to_seconds, write_imported
+from .common import (find_gaps, nominal_rate, numbers, odometry_from_groundtruth, read_rows, ticks_to_seconds,
+                     write_imported)
 
 __all__ = ["DEFAULT_CONF", "read_sensor_yaml", "read_asl_csv", "load_euroc", "import_euroc"]
 
@@ -152,6 +153,7 @@ def load_euroc(folder, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
 
 def import_euroc(folder, out, conf: dict | None = None, overwrite: bool = False, progress: bool = True,
                  photometric: str | dict | None = None) -> Path:
-    """Import one camera of a EuRoC sequence as the survey run ``out`` (written atomically; see :func:`.common.write_imported`)."""
+    """Import one camera of a EuRoC sequence as the survey run ``out``, written atomically
+    (:func:`.common.write_imported`)."""
     run, sources = load_euroc(folder, conf)
     return write_imported(run, sources, out, overwrite, progress, photometric)

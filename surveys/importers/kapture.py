@@ -37,8 +37,9 @@ import numpy as np
 
 from ..errors import DataError
 from ..geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, pose_to_xyzquat, xyzquat_to_pose
-from ..run import FORMAT_VERSION, SurveyRun, commit_folder, dump_toml, staging_folder
-from .common import TIMESTAMP_UNITS, nominal_rate, numbers, odometry_from_groundtruth, read_rows, ticks_to_seconds, write_imported
+from ..run import FORMAT_VERSION, SurveyRun, dump_toml, staged_folder
+from .common import (TIMESTAMP_UNITS, nominal_rate, numbers, odometry_from_groundtruth, read_rows, ticks_to_seconds,
+                     write_imported)
 
 __all__ = ["DEFAULT_CONF", "export_kapture", "load_kapture", "import_kapture", "read_kapture_csv",
            "KAPTURE_VERSION", "TIMESTAMP_UNITS"]
@@ -145,40 +146,44 @@ def export_kapture(run: SurveyRun, out, camera_id: str = "cam", overwrite: bool 
 
     if run.root is None:
         raise ValueError("the run has no folder to take its images from")
+    if not camera_id or any(c in camera_id for c in ",/\\") or camera_id in ("vehicle", "odometry", "gps", "truth"):
+        raise ValueError(f"camera id {camera_id!r}: no commas or slashes, and not a name the export uses itself")
     out = Path(out)
-    tmp = staging_folder(out, overwrite, "kapture folder")
-    s = tmp / "sensors"
-    sensors = [[camera_id, run.name, "camera"] + _camera_params(run.camera),
-               ["odometry", run.odometry_source, "odometry"]]
-    if run.gps is not None:
-        sensors.append(["gps", "", "gps_local"])
-    if run.truth_times is not None:
-        sensors.append(["truth", "", "pose"])
-    _write(s / "sensors.txt", "sensor_device_id, name, sensor_type, [sensor_params]+", sensors)
-    _write(s / "rigs.txt", "rig_device_id, sensor_device_id, " + _POSE_COLS,
-           [["vehicle", camera_id] + _pose_fields(invert(run.T_vehicle_camera))])
-    if run.groundtruth_times is not None:
-        _write(s / "trajectories.txt", "timestamp, device_id, " + _POSE_COLS,
-               [[_ns(t), "vehicle"] + _pose_fields(invert(T)) for t, T in zip(run.groundtruth_times, run.groundtruth_poses)])
-    paths = [f[len("images/"):] if f.startswith("images/") else f for f in run.frame_files]
-    _write(s / "records_camera.txt", "timestamp, device_id, image_path",
-           [[_ns(t), camera_id, f"{camera_id}/{p}"] for t, p in zip(run.frame_times, paths)])
-    for src, p in zip(tqdm(run.frame_files, desc=f"export {run.name}", unit="frame", disable=not progress), paths):
-        dst = s / "records_data" / camera_id / p
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(run.root / src, dst)
-    _write(s / "records_odometry.txt", "timestamp, device_id, " + _POSE_COLS + "  (T_vehicle_odom)",
-           [[_ns(t), "odometry"] + _pose_fields(invert(T)) for t, T in zip(run.odometry_times, run.odometry_poses)])
-    if run.gps is not None:
-        _write(s / "records_gps_local.txt", "timestamp, device_id, x, y, z",
-               [[_ns(r[0]), "gps"] + [repr(float(v)) for v in r[1:4]] for r in run.gps])
-    if run.truth_times is not None:
-        _write(s / "records_pose.txt", "timestamp, device_id, " + _POSE_COLS + "  (T_vehicle_world)",
-               [[_ns(t), "truth"] + _pose_fields(invert(T)) for t, T in zip(run.truth_times, run.truth_poses)])
-    side = {"scenesig_format_version": FORMAT_VERSION, "name": run.name, "conditions": list(run.conditions),
-            "camera_id": camera_id, "timestamp_unit": "ns", "rates": dict(run.rates), "metadata": dict(run.metadata)}
-    (tmp / _SIDE).write_text(dump_toml(side))
-    commit_folder(tmp, out)
+    with staged_folder(out, overwrite, "kapture folder") as tmp:
+        s = tmp / "sensors"
+        # kapture values must not contain commas; the exact name travels in scenesig_run.toml
+        sensors = [[camera_id, run.name.replace(",", " "), "camera"] + _camera_params(run.camera),
+                   ["odometry", run.odometry_source.replace(",", " "), "odometry"]]
+        if run.gps is not None:
+            sensors.append(["gps", "", "gps_local"])
+        if run.truth_times is not None:
+            sensors.append(["truth", "", "pose"])
+        _write(s / "sensors.txt", "sensor_device_id, name, sensor_type, [sensor_params]+", sensors)
+        _write(s / "rigs.txt", "rig_device_id, sensor_device_id, " + _POSE_COLS,
+               [["vehicle", camera_id] + _pose_fields(invert(run.T_vehicle_camera))])
+        if run.groundtruth_times is not None:
+            _write(s / "trajectories.txt", "timestamp, device_id, " + _POSE_COLS,
+                   [[_ns(t), "vehicle"] + _pose_fields(invert(T))
+                    for t, T in zip(run.groundtruth_times, run.groundtruth_poses)])
+        paths = [f[len("images/"):] if f.startswith("images/") else f for f in run.frame_files]
+        _write(s / "records_camera.txt", "timestamp, device_id, image_path",
+               [[_ns(t), camera_id, f"{camera_id}/{p}"] for t, p in zip(run.frame_times, paths)])
+        for src, p in zip(tqdm(run.frame_files, desc=f"export {run.name}", unit="frame", disable=not progress), paths):
+            dst = s / "records_data" / camera_id / p
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(run.root / src, dst)
+        _write(s / "records_odometry.txt", "timestamp, device_id, " + _POSE_COLS + "  (T_vehicle_odom)",
+               [[_ns(t), "odometry"] + _pose_fields(invert(T)) for t, T in zip(run.odometry_times, run.odometry_poses)])
+        if run.gps is not None:
+            _write(s / "records_gps_local.txt", "timestamp, device_id, x, y, z",
+                   [[_ns(r[0]), "gps"] + [repr(float(v)) for v in r[1:4]] for r in run.gps])
+        if run.truth_times is not None:
+            _write(s / "records_pose.txt", "timestamp, device_id, " + _POSE_COLS + "  (T_vehicle_world)",
+                   [[_ns(t), "truth"] + _pose_fields(invert(T)) for t, T in zip(run.truth_times, run.truth_poses)])
+        side = {"scenesig_format_version": FORMAT_VERSION, "name": run.name, "conditions": list(run.conditions),
+                "camera_id": camera_id, "timestamp_unit": "ns", "rates": dict(run.rates),
+                "metadata": dict(run.metadata)}
+        (tmp / _SIDE).write_text(dump_toml(side))
     return out
 
 
@@ -323,6 +328,7 @@ def load_kapture(root, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
 
 def import_kapture(root, out, conf: dict | None = None, overwrite: bool = False, progress: bool = True,
                    photometric: str | dict | None = None) -> Path:
-    """Import one camera of a kapture folder as the survey run ``out`` (written atomically; see :func:`.common.write_imported`)."""
+    """Import one camera of a kapture folder as the survey run ``out``, written atomically
+    (:func:`.common.write_imported`)."""
     run, sources = load_kapture(root, conf)
     return write_imported(run, sources, out, overwrite, progress, photometric)

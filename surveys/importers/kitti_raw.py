@@ -300,6 +300,7 @@ def load_kitti_raw(drive_dir, conf: dict | None = None) -> tuple[SurveyRun, list
 
 def import_kitti_raw(drive_dir, out, conf: dict | None = None, overwrite: bool = False, progress: bool = True,
                      photometric: str | dict | None = None) -> Path:
-    """Import a KITTI raw drive as the survey run ``out`` (written atomically; see :func:`.common.write_imported`)."""
+    """Import a KITTI raw drive as the survey run ``out``, written atomically
+    (:func:`.common.write_imported`)."""
     run, sources = load_kitti_raw(drive_dir, conf)
     return write_imported(run, sources, out, overwrite, progress, photometric)

@@ -129,6 +129,7 @@ def load_tum_rgbd(folder, conf: dict | None = None) -> tuple[SurveyRun, list[Pat
 
 def import_tum_rgbd(folder, out, conf: dict | None = None, overwrite: bool = False, progress: bool = True,
                     photometric: str | dict | None = None) -> Path:
-    """Import a TUM RGB-D sequence as the survey run ``out`` (written atomically; see :func:`.common.write_imported`)."""
+    """Import a TUM RGB-D sequence as the survey run ``out``, written atomically
+    (:func:`.common.write_imported`)."""
     run, sources = load_tum_rgbd(folder, conf)
     return write_imported(run, sources, out, overwrite, progress, photometric)
