@@ -192,6 +192,7 @@ def test_kitti_groundtruth_matches_oxts_within_1cm(kitti_drive, kitti_runs):
     np.testing.assert_allclose(run.gps[:, 1:], P[:, :3, 3], atol=1e-9)
     assert len(run) == 91 and run.metadata["trailing_timestamps_without_images"] == 63
     assert run.rates["camera_hz"] == pytest.approx(9.68, abs=0.05)
+    assert run.metadata["oxts_pos_accuracy_m"]["median"] == pytest.approx(0.45, abs=0.01)
 
 
 def test_kitti_stereo_extrinsics(kitti_runs):

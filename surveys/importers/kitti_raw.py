@@ -283,6 +283,11 @@ def load_kitti_raw(drive_dir, conf: dict | None = None) -> tuple[SurveyRun, list
         "world_frame": frame,
         **odometry_note("OXTS forward/leftward velocity and yaw rate integrated in the plane; NOT independent "
                         "of the INS", conf),
+        # what the OXTS unit itself claims for the ground truth (KITTI's gps_mode_to_string: 4 differential,
+        # 5 RTK float, 6 RTK integer): errors against it below this are not measurable
+        "oxts_pos_accuracy_m": {"median": float(np.median(oxts[:, _F["pos_accuracy"]])),
+                                "max": float(oxts[:, _F["pos_accuracy"]].max())},
+        "oxts_posmode": sorted({int(v) for v in oxts[:, _F["posmode"]]}),
         "dropped_frames": len(missing_idx), "gaps": gaps,
         "trailing_timestamps_without_images": int(len(cam_ts) - 1 - last),
         "image_formats": sorted(e.lstrip(".") for e in ext),
