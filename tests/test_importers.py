@@ -134,13 +134,26 @@ def test_failed_import_leaves_nothing_and_keeps_the_old_run(tmp_path):
     drive = make_kitti_drive(tmp_path / "drive")
     out = kitti_raw.import_kitti_raw(drive, tmp_path / "run", {"camera": 2}, progress=False)
     before = (out / "frames.csv").read_bytes()
-    (drive / "image_02" / "data" / "0000000004.png").write_bytes(b"\x89PNG broken")
+    (drive / "image_02" / "data" / "0000000004.png").write_bytes(b"GIF89a not what it claims")
     with pytest.raises(DataError, match="0000000004.png: not a decodable"):
         kitti_raw.import_kitti_raw(drive, out, {"camera": 2, "name": "other"}, overwrite=True, progress=False)
     assert (out / "frames.csv").read_bytes() == before and read_run(out).name == "drive_cam2"
     assert not out.with_name("run.tmp").exists() and not out.with_name("run.old").exists()
     with pytest.raises(FileExistsError):
         kitti_raw.import_kitti_raw(drive, out, {"camera": 3}, progress=False)
+    # a truncated image (which OpenCV would decode half grey without complaint) is named too
+    p = drive / "image_02" / "data" / "0000000004.png"
+    good = cv2.imencode(".png", np.full((32, 64, 3), 7, np.uint8))[1].tobytes()
+    p.write_bytes(good[: len(good) - 20])
+    with pytest.raises(DataError, match="0000000004.png: truncated PNG"):
+        kitti_raw.import_kitti_raw(drive, tmp_path / "other", {"camera": 2}, progress=False)
+    jpg = drive / "image_02" / "data" / "0000000004.jpg"
+    p.unlink()
+    data = cv2.imencode(".jpg", np.full((32, 64, 3), 7, np.uint8))[1].tobytes()
+    jpg.write_bytes(data[: len(data) // 2])
+    with pytest.raises(DataError, match="0000000004.jpg: truncated JPEG"):
+        kitti_raw.import_kitti_raw(drive, tmp_path / "other", {"camera": 2}, progress=False)
+    assert not (tmp_path / "other").exists() and not (tmp_path / "other.tmp").exists()
 
 
 def test_planar_dead_reckoning_follows_an_arc():

@@ -72,6 +72,11 @@ def checked_image_bytes(paths: Iterable[Path], size: tuple[int, int] | None = No
             data = Path(path).read_bytes()
         except OSError as exc:
             raise DataError(path, f"cannot read image ({exc.strerror})") from None
+        # OpenCV decodes a truncated file into a partly grey image without an error: check the end marker
+        if data[:3] == b"\xff\xd8\xff" and not data.rstrip(b"\x00\n\r")[-2:] == b"\xff\xd9":
+            raise DataError(path, "truncated JPEG (no end-of-image marker)")
+        if data[:4] == b"\x89PNG" and b"IEND" not in data[-12:]:
+            raise DataError(path, "truncated PNG (no IEND chunk)")
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
         if img is None:
             raise DataError(path, "not a decodable JPEG or PNG image")
