@@ -46,7 +46,8 @@ from mapping import georef as georef_mod
 from mapping import places as places_mod
 from mapping.pointmap import build_point_features
 from mapping.refine import Detections, REASONS, refine_landmarks
-from mapping.store import MapWriter, PlaceData, atomic_write_bytes, decode_place, encode_keyframe, place_file_name
+from mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
+from surveys.io import atomic_write_bytes
 
 __all__ = ["default_config", "build_map", "build_place", "load_config"]
 
@@ -115,10 +116,8 @@ def _true_depths(run: SurveyRun, frame: int, image: np.ndarray, boxes: np.ndarra
     """
     import cv2
 
-    try:
-        from surveys.sim.truth import depth_image
-    except ImportError:
-        return None
+    from surveys.sim.truth import depth_image
+
     depth = depth_image(run, frame)
     if depth is None:
         return None

@@ -107,10 +107,12 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     from joblib import Parallel, delayed
 
     from mapping.build import build_map
-    from mapping.store import MapStore, atomic_write_bytes
+    from mapping.store import MapStore
+    from surveys.io import atomic_write_bytes
     from surveys.run import read_run
 
-    from .experiments import matching_experiment, write_matching
+    from .experiments import matching_experiment
+    from .plots import write_matching
     from .report import build_report
 
     cfg = {**default_config, **(config or {})}
