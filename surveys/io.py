@@ -9,10 +9,11 @@ rename survives a power cut.
 from __future__ import annotations
 
 import os
+import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_path", "temp_name", "fsync_dir"]
+__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_path", "atomic_folder", "temp_name", "fsync_dir"]
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -83,3 +84,38 @@ def atomic_path(path):
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+@contextmanager
+def atomic_folder(folder, overwrite: bool = False, what: str = "folder"):
+    """Write a whole folder atomically (a survey run, a kapture): ``with atomic_folder(f) as tmp: fill(tmp)``.
+
+    Yields a fresh ``folder.tmp`` to fill, renamed to ``folder`` when the block ends without an exception.
+
+    Refuses (FileExistsError) when ``folder`` exists and ``overwrite`` is false: nothing written is
+    lost silently. On an exception the partial ``.tmp`` is removed and ``folder`` (new or old) is
+    untouched; an old ``folder`` is moved aside and deleted only after the new one is in place. A
+    ``.tmp`` left by a killed process is removed on the next write.
+    """
+    folder = Path(folder)
+    if folder.exists() and not overwrite:
+        raise FileExistsError(f"{folder}: {what} already exists (pass overwrite=True to replace it)")
+    tmp = folder.with_name(folder.name + ".tmp")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if folder.exists():
+        old = folder.with_name(folder.name + ".old")
+        if old.exists():
+            shutil.rmtree(old)
+        os.replace(folder, old)
+        os.replace(tmp, folder)
+        shutil.rmtree(old)
+    else:
+        os.replace(tmp, folder)
+    _fsync_dir(folder.parent)

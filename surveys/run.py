@@ -24,10 +24,8 @@ from __future__ import annotations
 import csv
 import io
 import math
-import os
 import shutil
 import tomllib
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,9 +33,10 @@ import numpy as np
 
 from .errors import DataError
 from .geometry import Camera, interpolate_poses, pose_to_xyzquat, xyzquat_to_pose
+from .io import atomic_folder
 from .tum import read_tum, write_tum
 
-__all__ = ["SurveyRun", "read_run", "write_run", "FORMAT_VERSION", "dump_toml", "staged_folder"]
+__all__ = ["SurveyRun", "read_run", "write_run", "FORMAT_VERSION", "dump_toml"]
 
 FORMAT_VERSION = 1
 _IMAGE_MAGIC = {b"\xff\xd8\xff": "jpeg", b"\x89PNG": "png"}
@@ -336,7 +335,7 @@ def write_run(run: SurveyRun, folder, images=None, overwrite: bool = False, jpeg
     folder = Path(folder)
     if images is None and run.root is None:
         raise ValueError("no images given and the run has no source folder to copy them from")
-    with staged_folder(folder, overwrite, "survey run") as tmp:
+    with atomic_folder(folder, overwrite, "survey run") as tmp:
         (tmp / "images").mkdir()
         files = list(run.frame_files) if run.frame_files else [f"images/{i:06d}.jpg" for i in range(len(run.frame_times))]
         if len(files) != len(run.frame_times):
@@ -380,35 +379,3 @@ def write_run(run: SurveyRun, folder, images=None, overwrite: bool = False, jpeg
             (tmp / "gps.csv").write_text(_csv_text(["timestamp", "x", "y", "z"],
                                                    [[f"{r[0]:.9f}"] + [repr(float(v)) for v in r[1:4]] for r in run.gps]))
     return folder
-
-
-@contextmanager
-def staged_folder(folder, overwrite: bool = False, what: str = "folder"):
-    """Write a folder atomically: yields a fresh ``folder.tmp`` to fill, renamed to ``folder`` on success.
-
-    Refuses (FileExistsError) when ``folder`` exists and ``overwrite`` is false: nothing written is
-    lost silently. On an exception the partial ``.tmp`` is removed and ``folder`` (new or old) is
-    untouched; an old ``folder`` is moved aside and deleted only after the new one is in place. A
-    ``.tmp`` left by a killed process is removed on the next write.
-    """
-    folder = Path(folder)
-    if folder.exists() and not overwrite:
-        raise FileExistsError(f"{folder}: {what} already exists (pass overwrite=True to replace it)")
-    tmp = folder.with_name(folder.name + ".tmp")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if folder.exists():
-        old = folder.with_name(folder.name + ".old")
-        if old.exists():
-            shutil.rmtree(old)
-        os.replace(folder, old)
-        os.replace(tmp, folder)
-        shutil.rmtree(old)
-    else:
-        os.replace(tmp, folder)

@@ -37,7 +37,8 @@ import numpy as np
 
 from ..errors import DataError
 from ..geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, pose_to_xyzquat, xyzquat_to_pose
-from ..run import FORMAT_VERSION, SurveyRun, dump_toml, staged_folder
+from ..io import atomic_folder
+from ..run import FORMAT_VERSION, SurveyRun, dump_toml
 from .common import (TIMESTAMP_UNITS, nominal_rate, numbers, odometry_from_groundtruth, read_rows, ticks_to_seconds,
                      write_imported)
 
@@ -149,7 +150,7 @@ def export_kapture(run: SurveyRun, out, camera_id: str = "cam", overwrite: bool 
     if not camera_id or any(c in camera_id for c in ",/\\") or camera_id in ("vehicle", "odometry", "gps", "truth"):
         raise ValueError(f"camera id {camera_id!r}: no commas or slashes, and not a name the export uses itself")
     out = Path(out)
-    with staged_folder(out, overwrite, "kapture folder") as tmp:
+    with atomic_folder(out, overwrite, "kapture folder") as tmp:
         s = tmp / "sensors"
         # kapture values must not contain commas; the exact name travels in scenesig_run.toml
         sensors = [[camera_id, run.name.replace(",", " "), "camera"] + _camera_params(run.camera),
