@@ -35,6 +35,17 @@ def _summary(m: dict) -> dict:
             "truth_source": m.get("truth_source")}
 
 
+def _emit(result: dict, json_path) -> None:
+    """Print the JSON, and write it atomically to ``json_path`` if given."""
+    from surveys.io import atomic_write_text
+
+    text = json.dumps(result, indent=1)
+    print(text)
+    if json_path:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(json_path, text + "\n")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.kitti_drive", description=__doc__.splitlines()[0])
     ap.add_argument("drive", nargs="?", default=str(DEFAULT_DRIVE))
@@ -75,9 +86,7 @@ def main(argv=None) -> int:
         build = build_map([read_run(work / k) for k in map_runs], read_run(work / "cam2"), work / "map", jobs=args.jobs)
     except (ValueError, RuntimeError) as exc:
         result["build"] = {"error": f"{type(exc).__name__}: {exc}"}
-        print(json.dumps(result, indent=1))
-        if args.json:
-            Path(args.json).write_text(json.dumps(result, indent=1) + "\n")
+        _emit(result, args.json)
         return 3
     result["build"] = {"seconds": round(time.perf_counter() - t0, 1), "places": build.get("places"),
                        "signatures_per_place_mean": build.get("signatures_per_place_mean")}
@@ -93,10 +102,7 @@ def main(argv=None) -> int:
         result["targets_met"] = {"lateral": s["lateral_median_m"] <= TARGETS["lateral_median_m"],
                                  "heading": s["heading_median_deg"] <= TARGETS["heading_median_deg"],
                                  "no_failure": s["failures"] == 0}
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.json:
-        Path(args.json).write_text(text + "\n")
+    _emit(result, args.json)
     if tmp is not None:
         tmp.cleanup()
     return 0

@@ -59,7 +59,10 @@ def main(argv=None) -> int:
     text = json.dumps(result, indent=1)
     print(text)
     if args.json:
-        Path(args.json).write_text(text + "\n")
+        from surveys.io import atomic_write_text
+
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(args.json, text + "\n")
     return 0
 
 
