@@ -312,6 +312,11 @@ def test_kapture_round_trip_is_identical(tmp_path):
     _same_run(src, back)
     for f in ("frames.csv", "gps.csv"):
         assert (src.root / f).read_bytes() == (back.root / f).read_bytes()
+    # --odometry-noise on a scenesig export drifts the recorded odometry (not silently ignored)
+    noisy = read_run(kapture.import_kapture(tmp_path / "kapture", tmp_path / "noisy", {"odometry_noise": 2.0},
+                                            progress=False))
+    assert noisy.odometry_source == src.odometry_source + "+noise" and "perturbed" in noisy.metadata["odometry"]
+    assert not np.allclose(noisy.odometry_increments(), src.odometry_increments(), atol=1e-6)
     # and export refuses to overwrite
     with pytest.raises(FileExistsError):
         kapture.export_kapture(src, tmp_path / "kapture", progress=False)

@@ -39,8 +39,8 @@ from ..errors import DataError
 from ..geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, pose_to_xyzquat, xyzquat_to_pose
 from ..io import atomic_folder
 from ..run import FORMAT_VERSION, SurveyRun, dump_toml
-from .common import (TIMESTAMP_UNITS, nominal_rate, numbers, odometry_from_groundtruth, read_rows, ticks_to_seconds,
-                     write_imported)
+from .common import (TIMESTAMP_UNITS, nominal_rate, numbers, odometry_from_groundtruth, odometry_note,
+                     odometry_with_noise, read_rows, ticks_to_seconds, write_imported)
 
 __all__ = ["DEFAULT_CONF", "export_kapture", "load_kapture", "import_kapture", "read_kapture_csv",
            "KAPTURE_VERSION", "TIMESTAMP_UNITS"]
@@ -51,7 +51,7 @@ DEFAULT_CONF = {
     "timestamp_unit": None,    # ns|us|ms|s; None = scenesig_run.toml's, else ns
     "name": None,
     "conditions": None,        # None = scenesig_run.toml's, else []
-    "odometry_noise": 0.0,     # only used when odometry is derived from the trajectory
+    "odometry_noise": 0.0,     # drift added to the recorded odometry, or to the trajectory-derived one
     "odometry_seed": 0,
 }
 _HEADER = f"# kapture format: {KAPTURE_VERSION}\n"
@@ -299,6 +299,10 @@ def load_kapture(root, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
         odo_t = gt_t
     else:
         odo_source = sensors["odometry"][1][1] or "odometry"
+        if float(conf["odometry_noise"]) > 0:  # asked for: drift on top of the recorded odometry
+            odo_P = odometry_with_noise(odo_P, float(conf["odometry_noise"]), int(conf["odometry_seed"]))
+            note = odometry_note(side.get("metadata", {}).get("odometry", odo_source), conf)
+            odo_source += "+noise"
     gps = truth_t = truth_T = None
     if (s / "records_gps_local.txt").is_file():
         gpath = s / "records_gps_local.txt"
