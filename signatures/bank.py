@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from surveys.settings import merge_settings
+
 from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
 from signatures.hog import level_scale, level_size, window_cell
 
@@ -353,7 +355,7 @@ class Bank:
         -------
         Detections
         """
-        cfg = {**default_config, **(config or {})}
+        cfg = merge_settings(default_config, config, "detection")
         n = len(self)
         if isinstance(image, HogPyramid):
             pyr = image

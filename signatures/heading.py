@@ -47,6 +47,7 @@ import numpy as np
 
 from signatures import hog as hogmod
 from signatures import mining
+from surveys.settings import merge_settings
 
 __all__ = ["default_config", "SignatureHeading", "estimate_heading_signatures", "vote_displacement",
            "augment"]
@@ -246,14 +247,9 @@ class SignatureHeading:
             from surveys.grief import load
             dataset = load(dataset)
         self.dataset = dataset
-        cfg = {**default_config}
-        if dataset.kind == "sequence":
-            cfg.update(sequence_overrides)
-        cfg.update(config or {})
-        unknown = set(config or {}) - set(default_config)
-        if unknown:
-            raise ValueError(f"unknown heading config keys: {', '.join(sorted(unknown))}")
-        self.config = cfg
+        base = merge_settings(default_config, sequence_overrides if dataset.kind == "sequence" else None,
+                              "heading", open=("mining",))
+        self.config = merge_settings(base, config, "heading", open=("mining",))
         self.n_jobs = int(n_jobs)
         self.progress = progress
         self.records: dict = {}

@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from surveys.settings import merge_settings
+
 __all__ = ["default_config", "PointFeatures", "Matches", "Vote", "extract", "match",
            "vote_displacement", "estimate_displacement", "FEATURE_KINDS", "MATCH_FILTERS"]
 
@@ -173,13 +175,7 @@ def _make(kind: str, config: dict):
 
 
 def _merge(config: dict | None) -> dict:
-    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
-    for k, v in (config or {}).items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k].update(v)
-        else:
-            out[k] = v
-    return out
+    return merge_settings(default_config, config, "point-feature")
 
 
 def extract(image: np.ndarray, kind: str = "orb", n_features: int | None = None,
