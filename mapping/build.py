@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from surveys.settings import merge_settings
 from surveys.geometry import invert
 from surveys.run import SurveyRun
 from signatures.mining import mine_place
@@ -69,12 +70,9 @@ default_config = {
 
 
 def _merge(config):
-    cfg = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
-    for k, v in (config or {}).items():
-        if k not in cfg:
-            raise ValueError(f"unknown build option {k!r}; known: {sorted(cfg)}")
-        cfg[k] = {**cfg[k], **v} if isinstance(cfg[k], dict) else v
-    return cfg
+    # every sub-dict is passed on whole to its stage, which checks it
+    return merge_settings(default_config, config, "build",
+                          open=tuple(k for k, v in default_config.items() if isinstance(v, dict)))
 
 
 def _subsample(window: np.ndarray, centre: int, n: int, positions: np.ndarray | None = None) -> np.ndarray:
