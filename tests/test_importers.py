@@ -84,6 +84,8 @@ def test_kitti_synthetic_geometry(tmp_path):
     # odometry: the velocities integrated, planar
     np.testing.assert_allclose(run.odometry_poses[:, 0, 3], 0.5 * np.arange(6), atol=1e-5)  # float64 clock at 1.3e9 s
     assert "NOT independent of the INS" in run.metadata["odometry"]
+    with pytest.raises(ValueError, match="unknown kitti_raw import option"):
+        kitti_raw.load_kitti_raw(drive, {"camra": 3})
 
 
 def test_kitti_gaps_kept_not_interpolated(tmp_path):

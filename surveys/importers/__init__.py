@@ -1,6 +1,7 @@
 """Importers and exporters between the survey-run folder and the formats users hold.
 
-One module per format, each with plain functions and a conf dict (as hloc's stages):
+One module per format, each with plain functions and a ``default_config`` dict that a caller's ``config``
+overrides (:func:`surveys.settings.merge_settings`: a misspelt option is an error):
 
 * :mod:`.kitti_raw` -- a KITTI raw drive (images, OXTS GPS/IMU, calibration chain);
 * :mod:`.kapture` -- NAVER's kapture text format, both ways;

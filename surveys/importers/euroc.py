@@ -30,12 +30,13 @@ import numpy as np
 from ..errors import DataError
 from ..geometry import Camera, nearest_rotation, xyzquat_to_pose
 from ..run import SurveyRun
+from ..settings import merge_settings
 from .common import (find_gaps, nominal_rate, numbers, odometry_from_groundtruth, read_rows, ticks_to_seconds,
                      write_imported)
 
-__all__ = ["DEFAULT_CONF", "read_sensor_yaml", "read_asl_csv", "load_euroc", "import_euroc"]
+__all__ = ["default_config", "read_sensor_yaml", "read_asl_csv", "load_euroc", "import_euroc"]
 
-DEFAULT_CONF = {
+default_config = {
     "camera": 0,              # cam0 (left) or cam1 (right)
     "name": None,
     "conditions": [],
@@ -107,9 +108,9 @@ def _groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return ticks_to_seconds(ticks, "ns"), xyzquat_to_pose(vals).reshape(-1, 4, 4)
 
 
-def load_euroc(folder, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]:
+def load_euroc(folder, config: dict | None = None) -> tuple[SurveyRun, list[Path]]:
     """Read one camera of a EuRoC sequence into a :class:`SurveyRun` (no writing) and its image files."""
-    conf = {**DEFAULT_CONF, **(conf or {})}
+    conf = merge_settings(default_config, config, "euroc import")
     folder = Path(folder)
     mav = folder / "mav0" if (folder / "mav0").is_dir() else folder
     if not (mav / f"cam{conf['camera']}").is_dir():
@@ -151,9 +152,9 @@ def load_euroc(folder, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
     return run, sources
 
 
-def import_euroc(folder, out, conf: dict | None = None, overwrite: bool = False, progress: bool = True,
+def import_euroc(folder, out, config: dict | None = None, overwrite: bool = False, progress: bool = True,
                  photometric: str | dict | None = None) -> Path:
     """Import one camera of a EuRoC sequence as the survey run ``out``, written atomically
     (:func:`.common.write_imported`)."""
-    run, sources = load_euroc(folder, conf)
+    run, sources = load_euroc(folder, config)
     return write_imported(run, sources, out, overwrite, progress, photometric)

@@ -39,14 +39,15 @@ from ..errors import DataError
 from ..geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, pose_to_xyzquat, xyzquat_to_pose
 from ..io import atomic_folder
 from ..run import FORMAT_VERSION, SurveyRun, dump_toml
+from ..settings import merge_settings
 from .common import (TIMESTAMP_UNITS, nominal_rate, numbers, odometry_from_groundtruth, odometry_note,
                      odometry_with_noise, read_rows, ticks_to_seconds, write_imported)
 
-__all__ = ["DEFAULT_CONF", "export_kapture", "load_kapture", "import_kapture", "read_kapture_csv",
+__all__ = ["default_config", "export_kapture", "load_kapture", "import_kapture", "read_kapture_csv",
            "KAPTURE_VERSION", "TIMESTAMP_UNITS"]
 
 KAPTURE_VERSION = "1.1"
-DEFAULT_CONF = {
+default_config = {
     "camera": None,            # sensor id; None = the only camera
     "timestamp_unit": None,    # ns|us|ms|s; None = scenesig_run.toml's, else ns
     "name": None,
@@ -209,9 +210,9 @@ def _timed_poses(path: Path, device: str, unit: str):
     return ticks_to_seconds(t, unit), invert(P)
 
 
-def load_kapture(root, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]:
+def load_kapture(root, config: dict | None = None) -> tuple[SurveyRun, list[Path]]:
     """Read one camera of a kapture folder as a :class:`SurveyRun` (no writing) and its image files."""
-    conf = {**DEFAULT_CONF, **(conf or {})}
+    conf = merge_settings(default_config, config, "kapture import")
     root = Path(root)
     if not root.is_dir():
         raise DataError(root, "kapture folder not found")
@@ -331,9 +332,9 @@ def load_kapture(root, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]
     return run, sources
 
 
-def import_kapture(root, out, conf: dict | None = None, overwrite: bool = False, progress: bool = True,
+def import_kapture(root, out, config: dict | None = None, overwrite: bool = False, progress: bool = True,
                    photometric: str | dict | None = None) -> Path:
     """Import one camera of a kapture folder as the survey run ``out``, written atomically
     (:func:`.common.write_imported`)."""
-    run, sources = load_kapture(root, conf)
+    run, sources = load_kapture(root, config)
     return write_imported(run, sources, out, overwrite, progress, photometric)

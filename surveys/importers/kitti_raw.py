@@ -42,13 +42,14 @@ import numpy as np
 from ..errors import DataError
 from ..geometry import Camera, invert, make_pose, nearest_rotation, rot_x, rot_y, rot_z
 from ..run import SurveyRun
+from ..settings import merge_settings
 from .common import (find_gaps, nominal_rate, numbers, odometry_note, odometry_with_noise, planar_dead_reckoning,
                      write_imported)
 
-__all__ = ["DEFAULT_CONF", "read_calib", "read_timestamps", "read_oxts", "oxts_poses", "camera_from_calib",
+__all__ = ["default_config", "read_calib", "read_timestamps", "read_oxts", "oxts_poses", "camera_from_calib",
            "load_kitti_raw", "import_kitti_raw", "OXTS_FIELDS", "EARTH_RADIUS"]
 
-DEFAULT_CONF = {
+default_config = {
     "camera": 2,              # 2 = left colour, 3 = right colour (0, 1: grey)
     "name": None,             # run name (default: drive folder name + "_cam<c>")
     "conditions": [],         # condition tags for run.toml, e.g. ["day", "overcast"]
@@ -222,13 +223,13 @@ def _calib_folder(drive: Path) -> Path:
 
 
 # --------------------------------------------------------------------------------------- import
-def load_kitti_raw(drive_dir, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]:
+def load_kitti_raw(drive_dir, config: dict | None = None) -> tuple[SurveyRun, list[Path]]:
     """Read a KITTI raw drive into a :class:`SurveyRun` (no writing) and the source image paths.
 
     Returns the run (``root`` None; ``frame_files`` are the names it will have) and the image files
     in frame order. See the module docstring for what becomes what.
     """
-    conf = {**DEFAULT_CONF, **(conf or {})}
+    conf = merge_settings(default_config, config, "kitti_raw import")
     drive = Path(drive_dir)
     if not drive.is_dir():
         raise DataError(drive, "KITTI raw drive folder not found")
@@ -303,9 +304,9 @@ def load_kitti_raw(drive_dir, conf: dict | None = None) -> tuple[SurveyRun, list
     return run, list(images.values())
 
 
-def import_kitti_raw(drive_dir, out, conf: dict | None = None, overwrite: bool = False, progress: bool = True,
+def import_kitti_raw(drive_dir, out, config: dict | None = None, overwrite: bool = False, progress: bool = True,
                      photometric: str | dict | None = None) -> Path:
     """Import a KITTI raw drive as the survey run ``out``, written atomically
     (:func:`.common.write_imported`)."""
-    run, sources = load_kitti_raw(drive_dir, conf)
+    run, sources = load_kitti_raw(drive_dir, config)
     return write_imported(run, sources, out, overwrite, progress, photometric)

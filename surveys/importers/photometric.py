@@ -21,11 +21,14 @@ HAZE = {"gain": 1.0, "gamma": 0.7, "tint": (0.95, 1.0, 1.0), "blur_px": 1.2, "no
 PRESETS = {"night": NIGHT, "dusk": DUSK, "haze": HAZE}
 
 
-def darken(image: np.ndarray, index: int = 0, conf: dict | None = None) -> np.ndarray:
-    """The darkened BGR uint8 copy of ``image`` (see the module docstring; ``conf`` overrides :data:`NIGHT`)."""
+def darken(image: np.ndarray, index: int = 0, config: dict | None = None) -> np.ndarray:
+    """The darkened uint8 copy of ``image`` (BGR or grey; see the module docstring; ``config`` overrides
+    :data:`NIGHT`)."""
     import cv2
 
-    c = {**NIGHT, **(conf or {})}
+    from ..settings import merge_settings
+
+    c = merge_settings(NIGHT, config, "photometric")
     # the tone change is pointwise per channel: one 256-entry table per channel instead of pow() per pixel
     x = np.arange(256, dtype=np.float64) / 255.0
     lin = x[None, :] ** 2.2 * float(c["gain"]) * np.asarray(c["tint"], float)[:, None]  # linear light, darkened
@@ -47,7 +50,9 @@ def photometric_transform(spec: str | dict = "night"):
             raise ValueError(f"unknown photometric transform {spec!r} ({', '.join(PRESETS)})")
         c, label = dict(PRESETS[spec]), spec
     else:
-        c, label = {**NIGHT, **spec}, "custom"
+        from ..settings import merge_settings
+
+        c, label = merge_settings(NIGHT, spec, "photometric"), "custom"
 
     def f(index: int, image: np.ndarray) -> np.ndarray:
         return darken(image, index, c)

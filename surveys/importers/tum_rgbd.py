@@ -31,10 +31,11 @@ import numpy as np
 from ..errors import DataError
 from ..geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose
 from ..run import SurveyRun
+from ..settings import merge_settings
 from ..tum import read_tum
 from .common import find_gaps, nominal_rate, numbers, odometry_from_groundtruth, read_rows, write_imported
 
-__all__ = ["DEFAULT_CONF", "INTRINSICS", "load_tum_rgbd", "import_tum_rgbd", "read_image_list", "intrinsics_for"]
+__all__ = ["default_config", "INTRINSICS", "load_tum_rgbd", "import_tum_rgbd", "read_image_list", "intrinsics_for"]
 
 # The colour cameras' calibration published with the benchmark (k1, k2, p1, p2, k3).
 INTRINSICS = {
@@ -43,7 +44,7 @@ INTRINSICS = {
     "fr3": Camera(535.4, 539.2, 320.1, 247.6, 640, 480),
 }
 
-DEFAULT_CONF = {
+default_config = {
     "intrinsics": None,       # "fr1" | "fr2" | "fr3" | a Camera; None = from the folder name
     "name": None,
     "conditions": [],
@@ -87,9 +88,9 @@ def intrinsics_for(folder: Path, intrinsics) -> Camera:
     return INTRINSICS[key]
 
 
-def load_tum_rgbd(folder, conf: dict | None = None) -> tuple[SurveyRun, list[Path]]:
+def load_tum_rgbd(folder, config: dict | None = None) -> tuple[SurveyRun, list[Path]]:
     """Read a TUM RGB-D sequence into a :class:`SurveyRun` (no writing) and its image files."""
-    conf = {**DEFAULT_CONF, **(conf or {})}
+    conf = merge_settings(default_config, config, "tum_rgbd import")
     folder = Path(folder)
     if not folder.is_dir():
         raise DataError(folder, "TUM RGB-D sequence folder not found")
@@ -127,9 +128,9 @@ def load_tum_rgbd(folder, conf: dict | None = None) -> tuple[SurveyRun, list[Pat
     return run, sources
 
 
-def import_tum_rgbd(folder, out, conf: dict | None = None, overwrite: bool = False, progress: bool = True,
+def import_tum_rgbd(folder, out, config: dict | None = None, overwrite: bool = False, progress: bool = True,
                     photometric: str | dict | None = None) -> Path:
     """Import a TUM RGB-D sequence as the survey run ``out``, written atomically
     (:func:`.common.write_imported`)."""
-    run, sources = load_tum_rgbd(folder, conf)
+    run, sources = load_tum_rgbd(folder, config)
     return write_imported(run, sources, out, overwrite, progress, photometric)
