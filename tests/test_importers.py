@@ -473,7 +473,8 @@ def test_cli_import_export(tmp_path, capsys):
 # --------------------------------------------------------------------------------------- end to end (heavy)
 @pytest.mark.heavy
 def test_kitti_end_to_end(kitti_drive, tmp_path):
-    """Map from camera 2 (one run), camera 3 and a darkened camera 3 replayed: the targets (lateral median <= 0.3 m, heading <= 1 deg, no failure)."""
+    """Map from camera 2 (one run); camera 3 and a darkened camera 3 replayed. Targets (camera 3, signatures):
+    lateral median <= 0.3 m, heading median <= 1 deg, no failure over the 33 m."""
     out = tmp_path / "kitti_drive.json"
     proc = subprocess.run([sys.executable, "-m", "scenesig.cli", "bench", "kitti-drive", str(kitti_drive), "--work",
                            str(tmp_path / "work"), "--json", str(out)], cwd=ROOT, capture_output=True, text=True)
