@@ -121,7 +121,7 @@ def load_scenes(root, train: str = "multi", exclude=DEFAULT_EXCLUDE) -> list[Sce
 
     root = Path(root)
     if not root.is_dir():
-        raise DataError(f"{root}: not a folder (expected one sub-folder of images per scene)")
+        raise DataError(root, "not a folder (expected one sub-folder of images per scene)")
     if train not in ("multi", "single"):
         raise ValueError(f"train must be 'multi' or 'single', got {train!r}")
     skip = set(exclude or ())
@@ -141,7 +141,7 @@ def load_scenes(root, train: str = "multi", exclude=DEFAULT_EXCLUDE) -> list[Sce
             tr = [even[i]]
         scenes.append(Scene(d.name, files, tr, odd))
     if not scenes:
-        raise DataError(f"{root}: no scene folder with at least two images ({', '.join(IMAGE_SUFFIXES)})")
+        raise DataError(root, f"no scene folder with at least two images ({', '.join(IMAGE_SUFFIXES)})")
     return scenes
 
 
@@ -150,7 +150,7 @@ def read_image(path) -> np.ndarray:
 
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
-        raise DataError(f"{path}: cannot decode the image")
+        raise DataError(path, "cannot decode the image")
     return img
 
 
@@ -164,6 +164,16 @@ def _resize(img, s):
 
 
 # ---------------------------------------------------------------------------------- methods
+
+
+def correct_mask(train_xy, test_xy, tolerance_px: float = 15.0) -> np.ndarray:
+    """A correspondence is correct when it sits within δ of its training position (§4.2)."""
+    tr = np.asarray(train_xy, float).reshape(-1, 2)
+    te = np.asarray(test_xy, float).reshape(-1, 2)
+    if len(tr) != len(te):
+        raise ValueError(f"{len(tr)} training and {len(te)} test positions")
+    with np.errstate(invalid="ignore"):
+        return np.linalg.norm(tr - te, axis=1) < float(tolerance_px)
 
 
 def mine_scene_bank(train_images, negatives, cfg: dict, n_jobs: int = 1):
@@ -288,7 +298,7 @@ def run_benchmark(root, methods=METHODS, train: str = "multi", config: dict | No
             for f, img, s in test:
                 tr, te = corr(img)
                 tr, te = tr / s, te / s          # full-resolution pixels
-                ok = np.linalg.norm(tr - te, axis=1) < tol if len(tr) else np.zeros(0, bool)
+                ok = correct_mask(tr, te, tol)
                 results[m].append(ImageResult(sc.name, f.name, period_of(hour_of(f.name)),
                                               int(ok.sum()), int(len(ok)), tr, te))
                 bar.update(1)
@@ -318,7 +328,9 @@ def _merged(base: dict, over: dict) -> dict:
     for k, v in over.items():
         if k not in base:
             raise ValueError(f"unknown webcam setting {k!r}; known: {', '.join(sorted(base))}")
-        out[k] = _merged(base[k], v) if isinstance(base[k], dict) and isinstance(v, dict) else v
+        # An empty default dict holds overrides another module validates (e.g. mining's).
+        nested = isinstance(base[k], dict) and base[k] and isinstance(v, dict)
+        out[k] = _merged(base[k], v) if nested else v
     return out
 
 
@@ -366,7 +378,7 @@ def plot_strips(results, scenes, root, out_dir, config=None, per_scene: int = 6)
                 ax.imshow(cv2.cvtColor(read_image(f), cv2.COLOR_BGR2RGB))
                 r = byname.get(f.name)
                 if r is not None and len(r.test_xy):
-                    ok = np.linalg.norm(r.train_xy - r.test_xy, axis=1) < cfg["tolerance_px"]
+                    ok = correct_mask(r.train_xy, r.test_xy, cfg["tolerance_px"])
                     ax.scatter(*r.test_xy[~ok].T, s=4, c="red", lw=0)
                     ax.scatter(*r.test_xy[ok].T, s=6, c="lime", lw=0)
                     ax.set_title(f"{f.stem}\n{r.correct}/{r.total}", fontsize=7)
@@ -429,6 +441,8 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--exclude", nargs="*", default=list(DEFAULT_EXCLUDE), metavar="SCENE/STEM",
                    help="images left out (default: the two courbevoie images whose camera moved)")
     p.add_argument("--jobs", type=int, default=1, help="mining workers (joblib)")
+    p.add_argument("--config", default=None, metavar="JSON",
+                   help="JSON file of overrides of the benchmark settings (default_config)")
     return p
 
 
@@ -439,8 +453,14 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
-        summary, results, scenes = run_benchmark(args.dir, methods, args.train, exclude=args.exclude,
-                                                 n_jobs=args.jobs)
+        config = None
+        if args.config:
+            try:
+                config = json.loads(Path(args.config).read_text())
+            except (OSError, ValueError) as exc:
+                raise DataError(args.config, f"cannot read the settings: {exc}") from None
+        summary, results, scenes = run_benchmark(args.dir, methods, args.train, config=config,
+                                                 exclude=args.exclude, n_jobs=args.jobs)
     except DataError as exc:
         print(f"scenesig: error: {exc}", file=sys.stderr)
         return 2
