@@ -32,7 +32,7 @@ least 10 correct ones.  Periods come from the hour in the file name: night 21-05
 Two courbevoie images are left out by default (``--exclude``): the data set's README reports that the
 camera moved by about 21 and 18 px when they were taken, more than δ, so the identity is not their truth.
 
-Run ``python -m benchmarks.webcam DIR --json OUT`` (or ``scenesig bench webcam``); it prints the JSON.
+Run ``scenesig bench webcam DIR --json OUT [--train multi|single] [--figure DIR]``; it prints the JSON.
 """
 from __future__ import annotations
 
@@ -447,32 +447,31 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 
 
 def main(argv=None) -> int:
+    """``scenesig bench webcam ARGS``; a :class:`~surveys.errors.DataError` is left to the CLI's handler."""
     from surveys.errors import DataError
-    from mapping.store import atomic_write_bytes
+    from surveys.io import atomic_write_text
 
     args = build_parser().parse_args(argv)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    try:
-        config = None
-        if args.config:
-            try:
-                config = json.loads(Path(args.config).read_text())
-            except (OSError, ValueError) as exc:
-                raise DataError(args.config, f"cannot read the settings: {exc}") from None
-        summary, results, scenes = run_benchmark(args.dir, methods, args.train, config=config,
-                                                 exclude=args.exclude, n_jobs=args.jobs)
-    except DataError as exc:
-        print(f"scenesig: error: {exc}", file=sys.stderr)
-        return 2
+    config = None
+    if args.config:
+        try:
+            config = json.loads(Path(args.config).read_text())
+        except (OSError, ValueError) as exc:
+            raise DataError(args.config, f"cannot read the settings: {exc}") from None
+    summary, results, scenes = run_benchmark(args.dir, methods, args.train, config=config,
+                                             exclude=args.exclude, n_jobs=args.jobs)
     if args.figure:
         fig = Path(args.figure)
         plot_strips(results, scenes, args.dir, fig / args.train)
         plot_periods(summary, fig / f"webcam_{args.train}_periods.png")
     text = json.dumps(summary, indent=2)
-    atomic_write_bytes(Path(args.json), (text + "\n").encode())
+    atomic_write_text(Path(args.json), text + "\n")
     print(text)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from scenesig.cli import main as _cli
+
+    raise SystemExit(_cli(["bench", "webcam", *sys.argv[1:]]))

@@ -88,3 +88,11 @@ def test_correct_means_within_delta_of_the_training_position():
     assert webcam.correct_mask(np.zeros((0, 2)), np.zeros((0, 2))).shape == (0,)
     with pytest.raises(ValueError):
         webcam.correct_mask(tr, te[:2])
+
+
+def test_cli_names_a_missing_folder(tmp_path, capsys):
+    from scenesig.cli import main
+
+    assert main(["bench", "webcam", str(tmp_path / "nope"), "--json", str(tmp_path / "o.json")]) == 2
+    assert "nope: not a folder" in capsys.readouterr().err
+    assert not (tmp_path / "o.json").exists()

@@ -20,6 +20,7 @@ BENCHMARKS = {
     "render": ("render", "Simulator render speed (frames/s per condition, one core)."),
     "pointmap": ("pointmap", "ORB/SIFT point map of one keyframe: time, size, depth error."),
     "mining": ("mining", "Mine one place's scene signatures from images; mining statistics."),
+    "webcam": ("webcam", "Real night/fog/snow matching on fixed webcams (correct within 15 px)."),
     "realism": ("realism", "ORB matches across simulated conditions (and GRIEF with --real)."),
 }
 
