@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from benchmarks import webcam
-from signatures.synthetic import synthetic_place
+from localiser.synthetic import synthetic_place
 from surveys.errors import DataError
 
 
