@@ -35,6 +35,7 @@ import numpy as np
 from mapping.pointmap import point_features
 from mapping.store import MapStore
 from signatures.bank import Bank
+from surveys.atomic import atomic_write_figure, atomic_write_text, make_dirs
 from surveys.errors import DataError
 from surveys.geometry import interpolate_poses, yaw_of
 from surveys.run import SurveyRun, read_run
@@ -94,11 +95,11 @@ def _plt():
 
 def _savefig(fig, path: Path) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    _plt().close(fig)
-    tmp.replace(path)
+    make_dirs(path.parent)
+    try:
+        atomic_write_figure(fig, path, dpi=100)
+    finally:
+        _plt().close(fig)
     return path
 
 
@@ -371,11 +372,9 @@ def plot_matching_heatmaps(result: MatchingResult, store: MapStore, method: str,
 def write_matching(result: MatchingResult, store: MapStore, out, heat_places: int = 8) -> dict:
     """``matching.json`` and the figures in ``out``; returns ``{name: path}``."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
     paths = {"json": out / "matching.json"}
-    tmp = out / "matching.json.tmp"
-    tmp.write_text(json.dumps(result.to_json(), indent=1, allow_nan=False) + "\n")
-    tmp.replace(paths["json"])
+    atomic_write_text(paths["json"], json.dumps(result.to_json(), indent=1, allow_nan=False) + "\n")
     paths["counts"] = plot_matching_counts(result, out / "matching_counts.png")
     for m in result.methods:
         paths[f"heatmap_{m}"] = plot_matching_heatmaps(result, store, m, out / f"matching_heatmap_{m}.png",
@@ -650,6 +649,9 @@ def summary_rows(outputs: list) -> list[dict]:
                      "localised_fraction": m.get("localised_fraction"), "failures": m.get("failures"),
                      "failures_per_km": m.get("failures_per_km"),
                      "blind_fraction_over_20m": m.get("blind_fraction_over_20m"), "distance_m": m.get("distance_m"),
+                     # frames skipped because their image failed strict decoding, and (real time)
+                     # frames dropped to keep up: None where the output predates these counts
+                     "frames_corrupt": m.get("frames_corrupt"), "frames_dropped": m.get("frames_dropped"),
                      "folder": str(o.folder)})
     return rows
 
@@ -659,8 +661,7 @@ def localisation_figures(outputs: list, out, runs: dict | None = None, d_max: fl
 
     Returns ``{"runs": {run: path}, "dead_reckoning": path, "curves": {method: {...}}, "d_grid": list}``.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_dirs(out)
     by_run: dict = {}
     for o in outputs:
         by_run.setdefault(o.run, []).append(o)

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import threading
 import time
@@ -47,7 +48,8 @@ from pathlib import Path
 import numpy as np
 
 from mapping.store import MapStore
-from surveys.errors import DataError
+from surveys.atomic import atomic_write_figure, atomic_write_text, make_dirs
+from surveys.errors import CorruptImageError, DataError
 from surveys.run import SurveyRun, read_run
 from surveys.tum import write_tum
 
@@ -62,10 +64,15 @@ default_config = {
     "prefetch": True,            # deterministic mode: load and prepare (WeakLocaliser.prepare) the next
                                  # detector frame on a worker thread while the current one is processed
     "speed": 1.0,                # real-time mode: playback speed (2 = twice as fast as recorded)
+    "odometry_queue": 10,        # real-time mode: odometry samples allowed to wait; when the feed falls
+                                 # further behind (CPU load), the oldest waiting samples are composed into
+                                 # one increment (exact in pose), so the backlog never grows without bound
     "max_path_distance_m": None,  # frames further than this from the map are left out of the errors
     "localiser": {},             # overrides of localiser.pipeline.default_config
     "method": {},                # method configuration (e.g. {"detector": {...}, "solver": {...}})
 }
+
+log = logging.getLogger(__name__)
 
 #: Columns of ``frames.csv``.
 FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
@@ -94,6 +101,7 @@ class ReplayResult:
     reasons: list                     # (N,) solver's rejection reason or None
     failures: int
     reset_times: list = field(default_factory=list)   # times of the oracle resets (odometry times)
+    corrupt: dict = field(default_factory=dict)       # frame -> reason: images that failed strict decoding
     timings: dict = field(default_factory=dict)
 
 
@@ -169,6 +177,15 @@ class _Recorder:
         self.ms_detect: list[float] = []
         self.ms_solve: list[float] = []
         self.lock = threading.Lock()
+        self.corrupt: dict[int, str] = {}   # frame -> why its image was rejected (skipped frames)
+
+    def corrupt_frame(self, i: int, exc: CorruptImageError) -> None:
+        """A frame whose image failed strict decoding: skipped (odometry goes on), named once."""
+        with self.lock:
+            if i in self.corrupt:
+                return
+            self.corrupt[i] = exc.message
+        log.warning("skipped frame %d: %s", i, exc)
 
     def pose(self, i: int, loc: Localiser, t: float) -> None:
         T = loc.estimate(t)
@@ -238,10 +255,14 @@ def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t
     """Detector + solver for frame i at time t (deterministic mode: inline)."""
     prior = loc.prior(t)
     method.prefetch(prior.next_place)
-    if frames is not None:
-        img, ms_prepare = frames.get(i)
-    else:
-        img, ms_prepare = run.image(i, gray=not method.color), 0.0
+    try:
+        if frames is not None:
+            img, ms_prepare = frames.get(i)
+        else:
+            img, ms_prepare = run.image(i, gray=not method.color), 0.0
+    except CorruptImageError as exc:
+        rec.corrupt_frame(i, exc)
+        return
     t0 = time.perf_counter()
     obs = method.detect(img, prior.place, prior)      # an image or its prepare() result
     t1 = time.perf_counter()
@@ -287,7 +308,7 @@ def _deterministic(method, loc, run, rec, every, progress, prefetch=True):
         bar.close()
 
 
-def _realtime(method, loc, run, rec, speed, progress):
+def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10):
     from tqdm import tqdm
 
     ft = rec.times
@@ -304,7 +325,11 @@ def _realtime(method, loc, run, rec, speed, progress):
                 t = max(float(ft[i]), t_start)
                 prior = loc.prior(t)
                 method.prefetch(prior.next_place)
-                img = run.image(i, gray=not method.color)
+                try:
+                    img = run.image(i, gray=not method.color)
+                except CorruptImageError as exc:
+                    rec.corrupt_frame(i, exc)
+                    continue
                 t0 = time.perf_counter()
                 obs = method.detect(img, prior.place, prior)   # detect() runs prepare() itself
                 solve_box.put((i, t, prior, obs, 1e3 * (time.perf_counter() - t0)))
@@ -336,15 +361,32 @@ def _realtime(method, loc, run, rec, speed, progress):
     wall0 = time.perf_counter()
     pending: list[int] = []
     bar = tqdm(total=len(ft), desc=f"localise {run.name} (real time x{speed:g})", unit="frame", disable=not progress)
+    odo_next = 1                 # next odometry sample to integrate
+    queue_max = coalesced = 0
+    lag_max = 0.0
     try:
         for t, kind, k in events:
             if errors:
                 break
+            if kind == 0 and k < odo_next:
+                continue                     # already integrated as part of a composed increment
             delay = wall0 + (t - t0_data) / speed - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
+            now = t0_data + (time.perf_counter() - wall0) * speed      # the data clock
+            lag_max = max(lag_max, now - t)
             if kind == 0:
-                loc.add_odometry(t, incs[k - 1])
+                # the odometry queue: samples already due (timestamp passed) but not yet integrated
+                due = int(np.searchsorted(odo_t, now, side="right")) - k
+                queue_max = max(queue_max, due)
+                last = k + max(0, due - odometry_queue)   # compose the oldest ones into one increment
+                inc = incs[k - 1]
+                for j in range(k + 1, last + 1):
+                    inc = inc @ incs[j - 1]
+                coalesced += last - k
+                odo_next = last + 1
+                t = float(odo_t[last])
+                loc.add_odometry(t, inc)
                 while pending and ft[pending[0]] <= t:
                     i = pending.pop(0)
                     rec.pose(i, loc, max(float(ft[i]), t_start))
@@ -352,7 +394,7 @@ def _realtime(method, loc, run, rec, speed, progress):
                 loc.check_failure(t)
             else:
                 pending.append(k)
-                frames_box.put(k)
+                frames_box.put(k)            # replaces a frame still waiting: a stale frame dropped
         for i in pending:
             rec.pose(i, loc, max(float(ft[i]), t_start))
             bar.update(1)
@@ -363,7 +405,8 @@ def _realtime(method, loc, run, rec, speed, progress):
         bar.close()
     if errors:
         raise errors[0]
-    return {"frames_dropped": frames_box.dropped + solve_box.dropped, "frames_detected": frames_box.delivered}
+    return {"frames_dropped": frames_box.dropped + solve_box.dropped, "frames_detected": frames_box.delivered,
+            "odometry_queue_max": queue_max, "odometry_coalesced": coalesced, "lag_max_s": lag_max}
 
 
 def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signatures", every: int = 4,
@@ -400,7 +443,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     wall0 = time.perf_counter()
     try:
         if realtime:
-            extra = _realtime(method, loc, run, rec, float(speed), progress)
+            extra = _realtime(method, loc, run, rec, float(speed), progress, int(cfg["odometry_queue"]))
         else:
             _deterministic(method, loc, run, rec, every, progress, bool(cfg["prefetch"]))
     finally:
@@ -424,7 +467,8 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     }
     return ReplayResult(run, method.name, "realtime" if realtime else "deterministic", None if realtime else every,
                         rec.times, rec.poses, rec.places, rec.detections, rec.inliers, rec.localised, resets,
-                        rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times), timings)
+                        rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times),
+                        dict(sorted(rec.corrupt.items())), timings)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -528,8 +572,11 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         "localisations": int(result.localised.sum()),
         "truth_source": source,
         "map": str(store.root),
+        # frames whose image failed strict decoding (truncated or corrupt): skipped, odometry went on
+        "frames_corrupt": len(result.corrupt),
+        "corrupt_frames": [run.frame_files[i] for i in result.corrupt] if run.frame_files else [],
     }
-    for k in ("frames_dropped", "frames_detected"):
+    for k in ("frames_dropped", "frames_detected", "odometry_queue_max", "odometry_coalesced", "lag_max_s"):
         if k in tm:
             metrics[k] = tm[k]
     return metrics, ev
@@ -546,9 +593,7 @@ def write_frames_csv(path: Path, result: ReplayResult, ev) -> None:
                                str(int(result.inliers[i])), str(int(result.localised[i])),
                                _fmt(ev.lateral_m[i]), _fmt(ev.heading_deg[i]),
                                _fmt(result.distance_since_localisation[i])]))
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
+    atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metrics: dict) -> None:
@@ -617,23 +662,20 @@ def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metri
     bx.set_ylabel("lateral error (m)")
     bx.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    try:
+        atomic_write_figure(fig, path, dpi=110)
+    finally:
+        plt.close(fig)
 
 
 def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_m: float | None = None,
                   figure: bool = True) -> dict:
     """Write trajectory.tum, frames.csv, metrics.json (and trajectory.png) into ``out``; return the metrics."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_dirs(out)
     metrics, ev = compute_metrics(result, store, max_path_distance_m)
     write_tum(out / "trajectory.tum", result.times, result.poses)
     write_frames_csv(out / "frames.csv", result, ev)
-    tmp = out / "metrics.json.tmp"
-    tmp.write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
-    tmp.replace(out / "metrics.json")
+    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     if figure:
         plot_trajectory(out / "trajectory.png", result, store, ev, metrics)
     return metrics

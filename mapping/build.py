@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from surveys.atomic import append_line
 from surveys.geometry import invert
 from surveys.run import SurveyRun, read_run
 from signatures.mining import mine_place
@@ -381,10 +382,7 @@ def _georef_observations(out: Path, places) -> dict:
 def _append_stats(out: Path, st: dict) -> None:
     """Journal one place's build stats just before its file is written, so they survive an interruption
     (a resumed build skips the place and would otherwise lose them); a later line for a place wins."""
-    with (Path(out) / "build_stats.jsonl").open("a") as fh:
-        fh.write(json.dumps(st) + "\n")
-        fh.flush()
-        os.fsync(fh.fileno())
+    append_line(Path(out) / "build_stats.jsonl", json.dumps(st))
 
 
 def _write_summary(out: Path, places, stats: dict, seconds: float) -> dict:

@@ -49,6 +49,7 @@ from typing import Callable
 
 import numpy as np
 
+from surveys.atomic import append_line, atomic_write_bytes, make_dirs, fsync_dir as _fsync_dir, remove_stale_temps
 from surveys.errors import DataError
 from surveys.geometry import Camera, yaw_of
 
@@ -395,36 +396,6 @@ def decode_place(raw: bytes, path: Path, index: int | None = None) -> PlaceData:
 # --------------------------------------------------------------------------------------------------------
 # atomic files
 # --------------------------------------------------------------------------------------------------------
-def _fsync_dir(folder: Path) -> None:
-    """Make a rename durable (POSIX); a no-op where folders cannot be opened (Windows)."""
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def _tmp_name(path: Path) -> Path:
-    return path.parent / f".{path.name}.{os.getpid()}.tmp"
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so readers see the old file or the whole new one, never a part."""
-    path = Path(path)
-    tmp = _tmp_name(path)
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
-
-
 def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
@@ -498,7 +469,7 @@ class MapWriter:
             "storage": {"float16_tol": self.float16_tol, "float16_min_size": self.float16_min_size,
                         "score_tol": self.score_tol if score_fn is not None else None},
         }
-        (self.root / PLACES_DIR).mkdir(parents=True, exist_ok=True)
+        make_dirs(self.root / PLACES_DIR)
         self._done: dict[int, dict] = {}
         self._remove_stale_temp_files()
         if overwrite:
@@ -509,8 +480,7 @@ class MapWriter:
     def _remove_stale_temp_files(self):
         # Left by a killed writer: never renamed, so never part of the map.
         for folder in (self.root, self.root / PLACES_DIR):
-            for p in folder.glob(".*.tmp"):
-                p.unlink(missing_ok=True)
+            remove_stale_temps(folder)
 
     def _clear(self):
         for p in (self.root / PLACES_DIR).glob("place_*.npz"):
@@ -575,10 +545,7 @@ class MapWriter:
         atomic_write_bytes(self.root / rel, raw)
         record = {"index": index, "file": rel, "sha256": _sha256(raw), "bytes": len(raw),
                   "signatures": data.n_signatures}
-        with open(self.root / JOURNAL, "a", encoding="utf-8") as f:
-            f.write(_canonical(record) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+        append_line(self.root / JOURNAL, _canonical(record))
         self._done[index] = record
         return record
 

@@ -24,7 +24,7 @@ from pathlib import Path
 from .errors import OutputError
 
 __all__ = ["atomic_write_bytes", "atomic_write_text", "append_line", "temp_name", "remove_stale_temps",
-           "fsync_dir", "output_error"]
+           "fsync_dir", "output_error", "make_dirs", "atomic_write_figure"]
 
 
 def output_error(path, exc: OSError) -> OutputError:
@@ -37,6 +37,16 @@ def output_error(path, exc: OSError) -> OutputError:
             errno.EROFS: "the file system is read-only: choose another output folder"}.get(exc.errno, "")
     reason = f"could not write: {exc.strerror or exc}" + (f" ({code})" if code else "")
     return OutputError(path, reason + (f"; {hint}" if hint else ""))
+
+
+def make_dirs(folder) -> Path:
+    """``mkdir -p`` that reports a failure as :class:`OutputError` naming the folder."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise output_error(folder, exc) from exc
+    return folder
 
 
 def fsync_dir(folder: Path) -> None:
@@ -96,6 +106,16 @@ def atomic_write_bytes(path, data: bytes) -> None:
 def atomic_write_text(path, text: str) -> None:
     """:func:`atomic_write_bytes` of UTF-8 text."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_figure(fig, path, **savefig_kw) -> Path:
+    """Render a matplotlib figure in memory and write it atomically (format from the suffix)."""
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format=Path(path).suffix.lstrip(".") or "png", **savefig_kw)
+    atomic_write_bytes(path, buf.getvalue())
+    return Path(path)
 
 
 def append_line(path, line: str) -> None:

@@ -171,6 +171,7 @@ KILL_SCRIPT = textwrap.dedent("""
     import os, signal, sys
     sys.path.insert(0, {tests!r})
     import mapping.store as S
+    import surveys.atomic as A
     from test_store import CAM, T_VC, PARAMS, make_place
     mode = {mode!r}
     def die():
@@ -183,25 +184,19 @@ KILL_SCRIPT = textwrap.dedent("""
             real(src, dst)
         S.os.replace = replace
     elif mode == "mid_temp_write":   # killed half-way through writing the temp file
-        real_open = open
-        class Half:
-            def __init__(self, f): self.f = f
-            def __enter__(self): return self
-            def __exit__(self, *a): self.f.close()
-            def write(self, b):
-                self.f.write(b[: len(b) // 2]); self.f.flush(); die()
-            def __getattr__(self, k): return getattr(self.f, k)
-        def fake_open(p, mode="r", *a, **k):
-            f = real_open(p, mode, *a, **k)
-            return Half(f) if "place_0002" in str(p) and "w" in mode else f
-        S.open = fake_open
+        real_write = A._write_all
+        def half(fd, data):
+            if "place_0002" in os.readlink(f"/proc/self/fd/{{fd}}"):
+                real_write(fd, bytes(data)[: len(data) // 2]); die()
+            real_write(fd, data)
+        A._write_all = half
     elif mode == "after_rename":     # killed after the rename, before the journal line
-        real = S._fsync_dir
+        real = A.fsync_dir
         def fsync_dir(folder):
             if (folder / "place_0002.npz").exists():
                 die()
             real(folder)
-        S._fsync_dir = fsync_dir
+        A.fsync_dir = fsync_dir
     w = S.MapWriter(sys.argv[1], CAM, T_VC, PARAMS)
     for i in range(5):
         w.write_place(i, make_place(i))
