@@ -63,6 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--out", required=True, help="map folder, e.g. maps/NAME")
     m.add_argument("--jobs", type=_positive_int, default=1, help="places built in parallel (joblib)")
     m.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
+    m.add_argument("--skip-corrupt", action="store_true",
+                   help="leave out frames whose image is truncated or corrupt (counted in build_summary.json) "
+                        "instead of stopping")
 
     ms = sub.add_parser("map", help="Inspect a map.")
     mss = ms.add_subparsers(dest="map_command", required=True, metavar="ACTION")

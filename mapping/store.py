@@ -38,7 +38,6 @@ import argparse
 import hashlib
 import io
 import json
-import os
 import sys
 import threading
 import zipfile

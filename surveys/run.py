@@ -91,6 +91,14 @@ class SurveyRun:
                                           f"{self.camera.width}x{self.camera.height}")
         return img
 
+    def without_frames(self, drop) -> "SurveyRun":
+        """The same run with the frames ``drop`` (indices) left out (e.g. corrupt images)."""
+        import dataclasses
+
+        keep = np.setdiff1d(np.arange(len(self)), np.asarray(list(drop), dtype=int))
+        return dataclasses.replace(self, frame_times=self.frame_times[keep],
+                                   frame_files=[self.frame_files[i] for i in keep])
+
     def pose_at(self, t, which: str = "groundtruth") -> np.ndarray:
         """Interpolated pose(s) at time(s) ``t`` from 'groundtruth' (INS), 'truth' or 'odometry'."""
         times = getattr(self, f"{which}_times")
