@@ -18,15 +18,15 @@ from pathlib import Path
 from surveys.check import Problem
 from surveys.errors import DataError
 
-from .store import JOURNAL, MANIFEST, MapStore, decode_place
+from .store import JOURNAL, MANIFEST, PLACES_DIR, MapStore, decode_place
 
 __all__ = ["check_map", "check_paths", "is_map"]
 
 
 def is_map(folder) -> bool:
-    """True if ``folder`` looks like a map (has a manifest or the journal of a build)."""
+    """True if ``folder`` looks like a map (a manifest, the journal of a build, or a places folder)."""
     folder = Path(folder)
-    return (folder / MANIFEST).is_file() or (folder / JOURNAL).is_file()
+    return (folder / MANIFEST).is_file() or (folder / JOURNAL).is_file() or (folder / PLACES_DIR).is_dir()
 
 
 def _weak_place_problems(store: MapStore) -> list[Problem]:
