@@ -124,8 +124,8 @@ def test_localise_skips_corrupt_frames_and_counts_them(world, tmp_path, caplog):
     # odometry flowed: every frame has a pose, and the run still localised everywhere else
     assert len(res.times) == len(run) and m["failures"] == 0 and m["localisations"] == res.detector_ran.sum()
     assert np.linalg.norm(res.poses[8, :3, 3] - res.poses[7, :3, 3]) > 0.2
-    from localiser.experiments import read_localise_output, summary_rows
-    from localiser.report import _summary_table
+    from scenesig.experiments import read_localise_output, summary_rows
+    from scenesig.report import _summary_table
 
     page = _summary_table(summary_rows([read_localise_output(tmp_path / "out")]), tmp_path)
     assert "corrupt frames" in page and "<td class='bad'>2</td>" in page
@@ -133,7 +133,7 @@ def test_localise_skips_corrupt_frames_and_counts_them(world, tmp_path, caplog):
 
 # --------------------------------------------------------------------------------------- build-map
 def test_build_map_names_a_corrupt_frame_before_mining(tmp_path, capsys):
-    from localiser.cli import main as cli
+    from scenesig.cli import main as cli
     from mapping.build import vet_images
     from surveys.run import read_run, write_run
 
@@ -239,7 +239,7 @@ def _same_except_timings(a: dict, b: dict):
 @pytest.mark.parametrize("err", [errno.ENOSPC, errno.EACCES])
 def test_localise_on_a_full_disk_loses_nothing_and_reruns_to_the_same_bytes(world, tmp_path, monkeypatch, capsys,
                                                                             err):
-    from localiser.cli import main as cli
+    from scenesig.cli import main as cli
 
     root, run, store = world
     args = ["localise", str(store.root), str(run.root), "--every", "2", "--out"]
@@ -276,7 +276,7 @@ def test_localise_on_a_full_disk_loses_nothing_and_reruns_to_the_same_bytes(worl
 
 def test_report_on_a_full_disk_keeps_the_previous_page(world, tmp_path, monkeypatch):
     from localiser.replay import replay, write_outputs
-    from localiser.report import build_report
+    from scenesig.report import build_report
     from pipeline_world import TruthMethod
 
     root, run, store = world
