@@ -365,20 +365,29 @@ def decode_place(raw: bytes, path: Path, index: int | None = None) -> PlaceData:
     try:
         fmt = json.loads(arrays.pop("format").tobytes())
         meta = json.loads(arrays.pop("meta").tobytes())
-    except (ValueError, UnicodeDecodeError) as exc:
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
         raise DataError(path, f"bad JSON in the place file's format/meta entry: {exc}") from None
+    if not isinstance(fmt, dict) or not isinstance(meta, dict):
+        raise DataError(path, "the place file's format/meta entries must be JSON objects")
     if fmt.get("format") != FORMAT_NAME or fmt.get("format_version") not in READABLE_VERSIONS:
         raise DataError(path, f"place file is {fmt.get('format')!r} version {fmt.get('format_version')!r}; "
                               f"this scenesig reads {FORMAT_NAME!r} versions {list(READABLE_VERSIONS)}")
     if index is not None and fmt.get("place") != index:
         raise DataError(path, f"place file holds place {fmt.get('place')}, expected place {index}")
     dtypes = fmt.get("dtypes", {})
-    for k, enc in fmt.get("float16_planes", {}).items():
+    planes = fmt.get("float16_planes", {})
+    if not isinstance(dtypes, dict) or not isinstance(planes, dict):
+        raise DataError(path, "bad 'dtypes' or 'float16_planes' in the place file's format entry")
+    for k, enc in planes.items():
         try:
             arrays[k] = _from_planes(arrays[k], enc["shape"])
         except (KeyError, TypeError, ValueError) as exc:
             raise DataError(path, f"bad float16 planes for {k!r}: {exc}") from None
-    restore = {k: (v.astype(dtypes[k]) if k in dtypes and str(v.dtype) != dtypes[k] else v) for k, v in arrays.items()}
+    try:
+        restore = {k: (v.astype(dtypes[k]) if k in dtypes and str(v.dtype) != dtypes[k] else v)
+                   for k, v in arrays.items()}
+    except (TypeError, ValueError) as exc:
+        raise DataError(path, f"bad dtype in the place file's format entry: {exc}") from None
     kf = restore.pop("keyframe").tobytes()
     try:
         return PlaceData(
@@ -604,6 +613,8 @@ def _read_json(path: Path):
         raise DataError(path, f"invalid JSON: {exc.msg}", line=exc.lineno) from None
     except UnicodeDecodeError as exc:
         raise DataError(path, f"not UTF-8 text: {exc}") from None
+    except (ValueError, RecursionError) as exc:   # e.g. a 5000-digit integer, nesting too deep
+        raise DataError(path, f"invalid JSON: {exc}") from None
 
 
 def _read_journal(path: Path):
@@ -792,46 +803,69 @@ class MapStore:
         return int(self._idx[np.argmin(d)])
 
 
+def _matrix44(v) -> bool:
+    """True if ``v`` is a finite 4x4 matrix (nested lists of numbers)."""
+    try:
+        m = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return m.shape == (4, 4) and bool(np.isfinite(m).all())
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
 def _validate_manifest(doc, path: Path) -> None:
+    """Every field :class:`MapStore` uses has the right type and shape; DataError naming ``path``."""
     if not isinstance(doc, dict):
         raise DataError(path, "manifest must be a JSON object")
     if doc.get("format") != FORMAT_NAME:
         raise DataError(path, f"not a scenesig map manifest (format is {doc.get('format')!r}, expected "
                               f"{FORMAT_NAME!r})")
     version = doc.get("format_version")
-    if version not in READABLE_VERSIONS:
+    if not _is_int(version) or version not in READABLE_VERSIONS:
         raise DataError(path, f"map format version {version!r} is not supported: this scenesig "
                               f"({software_version()}) reads version {FORMAT_VERSION}; rebuild the map "
                               f"(built by scenesig {doc.get('software', '?')})")
     for key in ("software", "camera", "T_vehicle_camera", "params", "places"):
         if key not in doc:
             raise DataError(path, f"manifest lacks '{key}'")
+    cam = doc["camera"]
     try:
-        Camera.from_dict(doc["camera"])
-    except (KeyError, TypeError, ValueError) as exc:
+        c = Camera.from_dict(cam)
+        ok = all(np.isfinite([c.fx, c.fy, c.cx, c.cy])) and c.fx > 0 and c.fy > 0 and c.width > 0 and c.height > 0
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
         raise DataError(path, f"bad camera entry: {exc!r}") from None
-    if np.asarray(doc["T_vehicle_camera"], dtype=float).shape != (4, 4):
-        raise DataError(path, "T_vehicle_camera must be a 4x4 matrix")
+    if not ok:
+        raise DataError(path, "bad camera entry: focal lengths and size must be positive and finite")
+    if not _matrix44(doc["T_vehicle_camera"]):
+        raise DataError(path, "T_vehicle_camera must be a finite 4x4 matrix")
+    if not isinstance(doc["params"], dict):
+        raise DataError(path, "'params' must be an object")
     if not isinstance(doc["places"], list):
         raise DataError(path, "'places' must be a list")
     seen = set()
+    need = {"index": _is_int, "T_world_place": _matrix44, "neighbours": lambda v: isinstance(v, list),
+            "file": lambda v: isinstance(v, str) and bool(v), "sha256": lambda v: isinstance(v, str),
+            "bytes": _is_int, "signatures": _is_int, "extra": lambda v: isinstance(v, dict)}
+    optional = {"signatures", "extra"}
     for i, p in enumerate(doc["places"]):
-        need = {"index", "T_world_place", "neighbours", "file", "sha256", "bytes"}
-        if not isinstance(p, dict) or not need <= set(p):
-            raise DataError(path, f"places[{i}] lacks {sorted(need - set(p or {}))}")
-        try:
-            ok = np.asarray(p["T_world_place"], dtype=float).shape == (4, 4)
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise DataError(path, f"places[{i}] (place {p['index']}): T_world_place must be a 4x4 matrix")
+        if not isinstance(p, dict):
+            raise DataError(path, f"places[{i}] must be an object")
+        missing = sorted(set(need) - optional - set(p))
+        if missing:
+            raise DataError(path, f"places[{i}] lacks {missing}")
+        for key, valid in need.items():
+            if key in p and not valid(p[key]):
+                raise DataError(path, f"places[{i}] (place {p['index']!r}): bad '{key}' {str(p[key])[:60]!r}")
         if p["index"] in seen:
             raise DataError(path, f"place {p['index']} listed twice")
         seen.add(p["index"])
         if Path(p["file"]).is_absolute() or ".." in Path(p["file"]).parts:
             raise DataError(path, f"place {p['index']}: file {p['file']!r} must be inside the map folder")
     for p in doc["places"]:
-        bad = [n for n in p["neighbours"] if n not in seen]
+        bad = [n for n in p["neighbours"] if not _is_int(n) or n not in seen]
         if bad:
             raise DataError(path, f"place {p['index']}: neighbours {bad} are not places of this map")
 

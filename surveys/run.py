@@ -238,7 +238,7 @@ def read_meta(path) -> dict:
         raise DataError(meta_path, "file not found (every survey run needs run.toml)")
     try:
         meta = tomllib.loads(meta_path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:   # TOMLDecodeError is a ValueError
         raise DataError(meta_path, f"not valid TOML: {exc}") from None
     version = meta.get("format_version")
     if version != FORMAT_VERSION or isinstance(version, bool):

@@ -183,7 +183,7 @@ KILL_SCRIPT = textwrap.dedent("""
             if str(dst).endswith("place_0002.npz"):
                 die()
             real(src, dst)
-        S.os.replace = replace
+        A.os.replace = replace
     elif mode == "mid_temp_write":   # killed half-way through writing the temp file
         real_write = A._write_all
         def half(fd, data):
