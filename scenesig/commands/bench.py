@@ -12,6 +12,7 @@ import importlib
 BENCHMARKS = {
     "heading": ("heading", "GRIEF heading-estimation benchmark (error rate at 20 px)."),
     "speed": ("speed", "Training and detection speed on simulated images."),
+    "strict_decode": ("strict_decode", "Cost per VGA frame and catch rate of strict image decoding."),
 }
 
 
