@@ -374,3 +374,61 @@ def test_realtime_keeps_up_with_both_cores_loaded(world, tmp_path, monkeypatch):
     assert m["failures"] == 0 and m["localisations"] > 0
     # composing increments is exact: the dead-reckoned end pose matches the odometry's
     assert m["lateral_error_m"]["median"] < 0.5
+
+
+# --------------------------------------------------------------------------------------- heavy: real builds
+@pytest.fixture(scope="module")
+def tiny_world(tmp_path_factory):
+    pytest.importorskip("surveys.sim.simulate")
+    from build_world import tiny_map, tiny_runs
+
+    base = tmp_path_factory.getbasetemp()
+    return tiny_runs(base), tiny_map(base)
+
+
+@pytest.mark.heavy
+def test_build_map_skip_corrupt_leaves_the_frames_out(tiny_world, tmp_path):
+    from build_world import CONFIG
+    from mapping.build import build_map
+    from mapping.store import MapStore
+    from surveys.run import read_run
+
+    runs, _ = tiny_world
+    for r in runs:
+        shutil.copytree(r.root, tmp_path / "runs" / r.root.name)
+    night = tmp_path / "runs" / runs[2].root.name
+    bad = [runs[2].frame_files[i] for i in (3, 10)]
+    for f in bad:
+        _truncate(night / f)
+    copies = [read_run(tmp_path / "runs" / r.root.name) for r in runs]
+    with pytest.raises(CorruptImageError, match="and 1 more corrupt frames"):
+        build_map(copies, copies[0], tmp_path / "m", jobs=2, progress=False, config=CONFIG)
+    summary = build_map(copies, copies[0], tmp_path / "m", jobs=2, progress=False, config=CONFIG, skip_corrupt=True)
+    assert summary["frames_corrupt"] == 2 and summary["corrupt_frames"] == [str(night / f) for f in bad]
+    on_disk = json.loads((tmp_path / "m" / "build_summary.json").read_text())
+    assert on_disk["frames_corrupt"] == 2
+    store = MapStore.open(tmp_path / "m", verify=True)
+    assert store.params["frames_left_out"] == {copies[2].name: bad}
+    assert all(m.signatures > 0 for m in store.places.values())
+
+
+@pytest.mark.heavy
+def test_build_map_on_a_full_disk_resumes_to_the_same_bytes(tiny_world, tmp_path, monkeypatch, capsys):
+    from build_world import CONFIG, map_contents
+    from scenesig.cli import main as cli
+
+    runs, reference = tiny_world
+    out = tmp_path / "m"
+    args = ["build-map", *[str(r.root) for r in runs], "--reference", str(runs[0].root), "--out", str(out),
+            "--config", json.dumps(CONFIG), "--jobs", "2"]
+    first_place = len((reference / "places" / "place_0000.npz").read_bytes())
+    with monkeypatch.context() as mp:
+        disk_full(mp, out, after_bytes=first_place + 20_000)     # the first place fits, the second does not
+        assert cli(args) == 2
+    err = capsys.readouterr().err
+    assert "scenesig: error: " in err and "No space left on device" in err and "Traceback" not in err
+    assert not list(out.rglob("*.tmp")) and not (out / "manifest.json").exists()
+    assert 1 <= len(list((out / "places").glob("place_*.npz"))) < len(list((reference / "places").glob("*.npz")))
+    assert cli(args) == 0                                         # space freed: resumes
+    a, b = map_contents(reference), map_contents(out)
+    assert a == b
