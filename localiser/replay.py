@@ -14,7 +14,15 @@ Two modes (issue 5 §1):
   one-slot mailbox that keeps only the newest item, so a frame that arrives while the detector is
   busy replaces the waiting one (stale frames are dropped, as on a vehicle).  Odometry is integrated
   at its full rate on the feeding thread; localisations are added to the pose graph whenever the
-  solver finishes (possibly a few frames late; the graph carries them to the right time).
+  solver finishes (possibly a few frames late; the graph carries them to the right time).  When the
+  feed falls behind the data clock (a loaded CPU), the odometry samples already due wait in a queue
+  of at most ``odometry_queue``; older ones are composed into one increment (exact in pose), so the
+  backlog -- and the lag -- never grow without bound (``odometry_coalesced``, ``odometry_queue_max``,
+  ``lag_max_s`` in ``metrics.json``).
+
+In both modes a frame whose image fails strict decoding (truncated or corrupt:
+:mod:`surveys.images`) is skipped -- no detection, the odometry goes on -- named once in a warning
+and counted (``frames_corrupt``, ``corrupt_frames``).
 
 Outputs in DIR: ``trajectory.tum`` (the estimate at every frame time; evo reads it),
 ``frames.csv`` (time, place, detections, inliers, localised, lateral_error, heading_error,
@@ -513,8 +521,10 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     ``ms_per_detection``, ``ms_per_solve``, ``ms_per_odometry_update``, ``realtime_factor`` (data
     duration / wall time of the replay), ``wall_seconds``; bookkeeping ``mode``, ``every``,
     ``distance_m``, ``duration_s``, ``frames``, ``frames_evaluated``, ``detector_frames``,
-    ``localisations``, ``truth_source``, ``map``, and in real-time mode ``frames_dropped`` and
-    ``frames_detected``.  Without ``truth.tum`` the errors are taken against ``groundtruth.tum``
+    ``localisations``, ``truth_source``, ``map``, ``frames_corrupt`` and ``corrupt_frames`` (frames
+    skipped: image truncated or corrupt), and in real-time mode ``frames_dropped`` (stale frames
+    dropped), ``frames_detected``, ``odometry_queue_max`` (most samples due at once),
+    ``odometry_coalesced`` (samples composed into a later one) and ``lag_max_s``.  Without ``truth.tum`` the errors are taken against ``groundtruth.tum``
     (``truth_source``).
     """
     run = result.run
