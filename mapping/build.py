@@ -338,7 +338,7 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
         raise CorruptImageError(exc.path, f"{exc.message}{more}; build-map --skip-corrupt leaves such frames out")
     left_out = {}
     if corrupt:
-        for run, b in zip(list(train), bad):
+        for run, b in zip(train, bad):
             if b:
                 log.warning("%s: leaving out %d corrupt frames (first: %s)", run.name, len(b), b[0][1])
                 left_out[run.name] = [run.frame_files[i] for i, _ in b]

@@ -575,9 +575,9 @@ def main(argv=None) -> int:
     import argparse
     import json
 
-    import cv2
 
     from surveys.errors import DataError
+    from surveys.images import read_image
 
     ap = argparse.ArgumentParser(description="Detect a stored bank (.npz from Bank.to_arrays) "
                                              "in an image and print the detections as JSON.")
@@ -590,9 +590,7 @@ def main(argv=None) -> int:
             bank = Bank.from_arrays(dict(z))
     except (OSError, ValueError) as e:
         raise DataError(args.bank, f"not a bank file: {e}") from None
-    img = cv2.imread(args.image, cv2.IMREAD_COLOR)
-    if img is None:
-        raise DataError(args.image, "cannot read or decode image")
+    img = read_image(args.image)          # strict: a truncated image is an error, not a grey frame
     det = bank.detect(img, top_n=args.top_n)
     rows = [{"classifier": i, "x": det.x[i].tolist(), "y": det.y[i].tolist(),
              "scale": det.scale[i].tolist(), "score": det.score[i].tolist(),

@@ -532,10 +532,9 @@ def main(argv=None) -> int:
     ap.add_argument("--levels", type=int, default=9, help="pyramid levels 0..N-1")
     args = ap.parse_args(argv)
     if args.image:
-        img = cv2.imread(args.image, cv2.IMREAD_COLOR)
-        if img is None:
-            from surveys.errors import DataError
-            raise DataError(args.image, "cannot read or decode image")
+        from surveys.images import read_image
+
+        img = read_image(args.image)      # strict: a truncated image is an error, not a grey frame
     else:
         rng = np.random.default_rng(0)
         img = cv2.GaussianBlur(rng.integers(0, 255, (480, 640), dtype=np.uint8), (5, 5), 1.5)

@@ -762,13 +762,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", help="write the bank arrays to this .npz")
     ap.add_argument("--n-jobs", type=int, default=1)
     args = ap.parse_args(argv)
-    from surveys.errors import DataError
+    from surveys.images import read_image
     imgs = []
     for p in args.images:
-        im = cv2.imread(p, cv2.IMREAD_COLOR)
-        if im is None:
-            raise DataError(p, "cannot read or decode image")
-        imgs.append(im)
+        imgs.append(read_image(p))        # strict: a truncated image is an error, not a grey frame
     bank, stats = mine_place(imgs, n_jobs=args.n_jobs, progress=True)
     if args.out:
         np.savez_compressed(args.out, **bank.to_arrays())

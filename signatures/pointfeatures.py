@@ -398,6 +398,9 @@ def estimate_displacement(a: PointFeatures, b: PointFeatures,
 
 
 def main(argv=None) -> int:
+    from surveys.errors import DataError
+    from surveys.images import read_image
+
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("map_image")
     p.add_argument("live_image")
@@ -408,10 +411,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     imgs = []
     for path in (args.map_image, args.live_image):
-        img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            p.error(f"{path}: cannot read image")
-        imgs.append(img)
+        try:
+            imgs.append(read_image(path, gray=True))   # strict: a truncated image is an error
+        except DataError as exc:
+            p.error(str(exc))
     fa, fb = (extract(im, args.kind) for im in imgs)
     vote, m = estimate_displacement(fa, fb, {"match": {"filter": args.filter,
                                                         "mutual": args.mutual},
