@@ -11,7 +11,8 @@ Frames: simulated 640x480 views of one place of the demo world under nine condit
 * ``overhead_ms`` -- median over frames of strict - lenient, timed back to back on each frame (the
   target is at most 1 ms per VGA frame; negative = strict is faster);
 
-for colour (``bgr``) and gray decoding.  Catch rates over ``--trials`` damaged copies of the frames:
+for colour (``bgr``) and gray decoding; for PNG also ``crc_walk_ms``, the strict check alone (the
+decoding itself is OpenCV's either way).  Catch rates over ``--trials`` damaged copies of the frames:
 ``truncated`` (cut at a uniformly drawn byte after the headers) and ``bit_flip`` (one random bit of
 the entropy-coded data flipped -- JPEG has no checksum, so a flip that still decodes to valid codes is
 undetectable by any decoder; PNG's CRC catches every one): the share ``strict`` rejects and the share
@@ -31,7 +32,7 @@ import cv2
 import numpy as np
 
 from surveys.errors import CorruptImageError
-from surveys.images import read_image
+from surveys.images import png_problem, read_image
 
 __all__ = ["run_benchmark", "main"]
 
@@ -97,6 +98,13 @@ def run_benchmark(n_frames: int = 18, repeats: int = 5, trials: int = 300) -> di
             for mode, flag, gray in (("bgr", cv2.IMREAD_COLOR, False), ("gray", cv2.IMREAD_GRAYSCALE, True)):
                 res[mode] = _paired_ms({"lenient": lambda p: cv2.imread(str(p), flag),
                                         "strict": lambda p: read_image(p, gray)}, paths, repeats)
+            if fmt == "png":     # the strict part alone: the chunk walk with every CRC
+                blobs = [p.read_bytes() for p in paths]
+                t0 = time.perf_counter()
+                for _ in range(repeats):
+                    for b in blobs:
+                        png_problem(b)
+                res["crc_walk_ms"] = 1e3 * (time.perf_counter() - t0) / (repeats * len(blobs))
             res["catch_rate"] = {k: _catch(paths, k, trials, rng) for k in ("truncated", "bit_flip")}
             out["formats"][fmt] = res
     jp = out["formats"]["jpeg"]

@@ -19,8 +19,8 @@ Every failure raises :class:`surveys.errors.CorruptImageError` naming the file.
 """
 from __future__ import annotations
 
+import binascii
 import struct
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +54,7 @@ def png_problem(data: bytes) -> str | None:
         if end > n:
             return f"truncated PNG: chunk {ctype!r} at byte {pos} needs {length} bytes, the file ends first"
         (crc,) = struct.unpack(">I", mv[end - 4:end])
-        if zlib.crc32(mv[pos + 4:end - 4]) != crc:
+        if binascii.crc32(mv[pos + 4:end - 4]) != crc:
             return f"corrupt PNG: CRC mismatch in chunk {ctype!r} at byte {pos}"
         if first and ctype != b"IHDR":
             return "corrupt PNG: first chunk is not IHDR"
