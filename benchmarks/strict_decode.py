@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     text = json.dumps(res, indent=1)
     print(text)
     if args.json:
-        from surveys.atomic import atomic_write_text
+        from surveys.io import atomic_write_text
 
         atomic_write_text(args.json, text + "\n")
     return 0

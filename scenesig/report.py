@@ -7,11 +7,11 @@ folder).  The page (``DIR/index.html``) has
   failures per km, share of distance more than 20 m blind;
 * failures per km of each point-feature method relative to scene signatures, per run (the paper's
   finding, in one number per run);
-* the localisation figures of §4.3-4.4 (:func:`scenesig.experiments.localisation_figures`): per run,
+* the localisation figures of §4.3-4.4 (:func:`scenesig.plots.localisation_figures`): per run,
   lateral / heading errors against truth for every method and the raw INS, speed, matches per frame with
   the localised frames marked; the dead-reckoning plot (Fig. 25);
 * the matching experiment's figures (Figs 11-14) when a ``matching.json`` is found below RESULTS
-  (written by :func:`scenesig.experiments.write_matching`).
+  (written by :func:`scenesig.plots.write_matching`).
 
 Figures are PNG files in ``DIR/figures`` referenced by relative links; the page has no script, no
 external style sheet and no web font, so it opens anywhere, offline.
@@ -29,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from surveys.atomic import atomic_write_bytes, atomic_write_text, make_dirs
 from surveys.errors import DataError
+from surveys.io import atomic_write_bytes, atomic_write_text, make_dirs
 
-from .experiments import (find_localise_outputs, find_runs, localisation_figures, read_localise_output,
-                          summary_rows)
+from .experiments import find_localise_outputs, find_runs, read_localise_output, summary_rows
+from .plots import localisation_figures
 
 __all__ = ["build_report", "find_matching"]
 

@@ -42,5 +42,5 @@ class OutputError(DataError):
 
     A :class:`DataError` so that the command line's one error handler reports it as
     ``scenesig: error: FILE: reason`` (exit 2) instead of a traceback; ``path`` is the file that was
-    being written, which is left as it was (see :mod:`surveys.atomic`).
+    being written, which is left as it was (see :mod:`surveys.io`).
     """

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_write_text
 from .errors import DataError
 from .geometry import pose_to_xyzquat, xyzquat_to_pose
+from .io import atomic_write_text
 
 __all__ = ["read_tum", "write_tum", "format_tum"]
 

@@ -7,6 +7,7 @@ import errno
 import json
 import logging
 import multiprocessing
+import os
 import pickle
 import shutil
 import time
@@ -247,8 +248,8 @@ def test_localise_on_a_full_disk_loses_nothing_and_reruns_to_the_same_bytes(worl
     reference = folder_bytes(tmp_path / "ref")
     out = tmp_path / "out"
     shutil.copytree(tmp_path / "ref", out)                      # an earlier result in the folder
-    # ENOSPC at once, or once the trajectory is written; EACCES: nothing can be created
-    for after in ((0, len(reference["trajectory.tum"]) + 5000) if err == errno.ENOSPC else (0,)):
+    # ENOSPC at once, or once the trajectory is written (in frames.csv); EACCES: nothing can be created
+    for after in ((0, len(reference["trajectory.tum"]) + 100) if err == errno.ENOSPC else (0,)):
         with monkeypatch.context() as mp:
             if err == errno.ENOSPC:
                 disk_full(mp, out, after_bytes=after)
@@ -274,6 +275,19 @@ def test_localise_on_a_full_disk_loses_nothing_and_reruns_to_the_same_bytes(worl
     _same_except_timings(folder_bytes(out), reference)
 
 
+def test_a_figure_that_cannot_be_written_leaves_nothing(tmp_path):
+    """Figures are written by their library (matplotlib) to a temporary name: an OSError there is an
+    OutputError naming the figure, and neither the temporary nor the final file is left."""
+    from surveys.io import atomic_path
+
+    (tmp_path / "fig.png").write_bytes(b"old figure")
+    with pytest.raises(OutputError, match=r"fig\.png: could not write: No space left on device \(ENOSPC\)"):
+        with atomic_path(tmp_path / "fig.png") as tmp:
+            tmp.write_bytes(b"half a fig")
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    assert folder_bytes(tmp_path) == {"fig.png": b"old figure"}
+
+
 def test_report_on_a_full_disk_keeps_the_previous_page(world, tmp_path, monkeypatch):
     from localiser.replay import replay, write_outputs
     from scenesig.report import build_report
@@ -284,7 +298,7 @@ def test_report_on_a_full_disk_keeps_the_previous_page(world, tmp_path, monkeypa
     build_report([tmp_path / "res"], tmp_path / "rep")
     before = folder_bytes(tmp_path / "rep")
     with monkeypatch.context() as mp:
-        disk_full(mp, tmp_path / "rep", after_bytes=5000)
+        disk_full(mp, tmp_path / "rep", after_bytes=200)
         with pytest.raises(OutputError, match="could not write"):
             build_report([tmp_path / "res"], tmp_path / "rep")
     after = folder_bytes(tmp_path / "rep")

@@ -7,7 +7,6 @@ image decoder.  Examples per reader: the ``scenesig-fuzz`` hypothesis profile (d
 ``scenesig-fuzz-heavy`` (``-m heavy``, or ``SCENESIG_FUZZ=heavy``); see tests/conftest.py.  Each
 example runs under a 10 s alarm, so a reader that loops forever fails instead of hanging the suite.
 """
-import json
 import os
 import shutil
 import signal

@@ -172,7 +172,7 @@ KILL_SCRIPT = textwrap.dedent("""
     import os, signal, sys
     sys.path.insert(0, {tests!r})
     import mapping.store as S
-    import surveys.atomic as A
+    import surveys.io as IO  # the atomic writer the store uses
     from test_store import CAM, T_VC, PARAMS, make_place
     mode = {mode!r}
     def die():
@@ -183,21 +183,21 @@ KILL_SCRIPT = textwrap.dedent("""
             if str(dst).endswith("place_0002.npz"):
                 die()
             real(src, dst)
-        A.os.replace = replace
+        IO.os.replace = replace
     elif mode == "mid_temp_write":   # killed half-way through writing the temp file
-        real_write = A._write_all
+        real_write = IO._write_all
         def half(fd, data):
             if "place_0002" in os.readlink(f"/proc/self/fd/{{fd}}"):
                 real_write(fd, bytes(data)[: len(data) // 2]); die()
             real_write(fd, data)
-        A._write_all = half
+        IO._write_all = half
     elif mode == "after_rename":     # killed after the rename, before the journal line
-        real = A.fsync_dir
+        real = IO._fsync_dir
         def fsync_dir(folder):
             if (folder / "place_0002.npz").exists():
                 die()
             real(folder)
-        A.fsync_dir = fsync_dir
+        IO._fsync_dir = fsync_dir
     w = S.MapWriter(sys.argv[1], CAM, T_VC, PARAMS)
     for i in range(5):
         w.write_place(i, make_place(i))

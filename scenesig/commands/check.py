@@ -32,7 +32,7 @@ def register(groups):
 def run(args) -> int:
     import json
 
-    from surveys.atomic import atomic_write_text
+    from surveys.io import atomic_write_text
     from mapping.check import check_paths
     from surveys.check import DEFAULT_MAX_GAP_S, Problem
 
