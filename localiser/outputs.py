@@ -17,7 +17,7 @@ import numpy as np
 
 from mapping.store import MapStore
 from surveys.errors import DataError
-from surveys.io import atomic_write_text
+from surveys.io import atomic_write_text, make_dirs
 from surveys.tum import write_tum
 
 from .evaluation import ReferencePath, evaluate, summary
@@ -77,8 +77,10 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     ``ms_per_detection``, ``ms_per_solve``, ``ms_per_odometry_update``, ``realtime_factor`` (data
     duration / wall time of the replay), ``wall_seconds``; bookkeeping ``mode``, ``every``,
     ``distance_m``, ``duration_s``, ``frames``, ``frames_evaluated``, ``detector_frames``,
-    ``localisations``, ``truth_source``, ``map``, and in real-time mode ``frames_dropped`` and
-    ``frames_detected``.  Without ``truth.tum`` the errors are taken against ``groundtruth.tum``
+    ``localisations``, ``truth_source``, ``map``, ``frames_corrupt`` and ``corrupt_frames`` (frames
+    skipped: image truncated or corrupt), and in real-time mode ``frames_dropped`` (stale frames
+    dropped), ``frames_detected``, ``odometry_queue_max`` (most samples due at once),
+    ``odometry_coalesced`` (samples composed into a later one) and ``lag_max_s``.  Without ``truth.tum`` the errors are taken against ``groundtruth.tum``
     (``truth_source``).
     """
     run = result.run
@@ -131,8 +133,11 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         "localisations": int(result.localised.sum()),
         "truth_source": source,
         "map": str(store.root),
+        # frames whose image failed strict decoding (truncated or corrupt): skipped, odometry went on
+        "frames_corrupt": len(result.corrupt),
+        "corrupt_frames": [run.frame_files[i] for i in result.corrupt] if run.frame_files else [],
     }
-    for k in ("frames_dropped", "frames_detected"):
+    for k in ("frames_dropped", "frames_detected", "odometry_queue_max", "odometry_coalesced", "lag_max_s"):
         if k in tm:
             metrics[k] = tm[k]
     return metrics, ev
@@ -186,7 +191,7 @@ def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_
                   figure: bool = True) -> dict:
     """Write trajectory.tum, frames.csv, metrics.json (and trajectory.png) into ``out``; return the metrics."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
     metrics, ev = compute_metrics(result, store, max_path_distance_m)
     write_tum(out / "trajectory.tum", result.times, result.poses)
     write_frames_csv(out / "frames.csv", result, ev)

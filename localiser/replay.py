@@ -14,7 +14,15 @@ Two modes:
   one-slot mailbox that keeps only the newest item, so a frame that arrives while the detector is
   busy replaces the waiting one (stale frames are dropped, as on a vehicle).  Odometry is integrated
   at its full rate on the feeding thread; localisations are added to the pose graph whenever the
-  solver finishes (possibly a few frames late; the graph carries them to the right time).
+  solver finishes (possibly a few frames late; the graph carries them to the right time).  When the
+  feed falls behind the data clock (a loaded CPU), the odometry samples already due wait in a queue
+  of at most ``odometry_queue``; older ones are composed into one increment (exact in pose), so the
+  backlog -- and the lag -- never grow without bound (``odometry_coalesced``, ``odometry_queue_max``,
+  ``lag_max_s`` in ``metrics.json``).
+
+In both modes a frame whose image fails strict decoding (truncated or corrupt:
+:mod:`surveys.images`) is skipped -- no detection, the odometry goes on -- named once in a warning
+and counted (``frames_corrupt``, ``corrupt_frames``).
 
 Outputs in DIR: ``trajectory.tum`` (the estimate at every frame time; evo reads it),
 ``frames.csv`` (time, place, detections, inliers, localised, lateral_error, heading_error,
@@ -35,6 +43,7 @@ Command line: ``scenesig localise MAP RUN --out DIR [--method signatures] [--eve
 """
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import dataclass, field
@@ -44,7 +53,7 @@ import numpy as np
 
 from mapping.store import MapStore
 from surveys.settings import merge_settings
-from surveys.errors import DataError
+from surveys.errors import CorruptImageError, DataError
 from surveys.run import SurveyRun, read_run
 
 from .outputs import (FRAMES_COLUMNS, TIMING_KEYS, compute_metrics, map_relative_truth,  # noqa: F401  (re-exported)
@@ -54,11 +63,16 @@ from .pipeline import Localiser, Measurement, WeakLocaliser, make_method
 __all__ = ["default_config", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
            "localise", "FRAMES_COLUMNS", "TIMING_KEYS"]
 
+log = logging.getLogger(__name__)
+
 default_config = {
     "every": 4,                  # deterministic mode: detector on every N-th frame
     "prefetch": True,            # deterministic mode: load and prepare (WeakLocaliser.prepare) the next
                                  # detector frame on a worker thread while the current one is processed
     "speed": 1.0,                # real-time mode: playback speed (2 = twice as fast as recorded)
+    "odometry_queue": 10,        # real-time mode: odometry samples allowed to wait; when the feed falls
+                                 # further behind (CPU load), the oldest waiting samples are composed into
+                                 # one increment (exact in pose), so the backlog never grows without bound
     "max_path_distance_m": None,  # frames further than this from the map are left out of the errors
     "localiser": {},             # overrides of localiser.pipeline.default_config
     "method": {},                # method configuration (e.g. {"detector": {...}, "solver": {...}})
@@ -84,6 +98,7 @@ class ReplayResult:
     reasons: list                     # (N,) solver's rejection reason or None
     failures: int
     reset_times: list = field(default_factory=list)   # times of the oracle resets (odometry times)
+    corrupt: dict = field(default_factory=dict)       # frame -> reason: images that failed strict decoding
     timings: dict = field(default_factory=dict)
 
 
@@ -159,6 +174,15 @@ class _Recorder:
         self.ms_detect: list[float] = []
         self.ms_solve: list[float] = []
         self.lock = threading.Lock()
+        self.corrupt: dict[int, str] = {}   # frame -> why its image was rejected (skipped frames)
+
+    def corrupt_frame(self, i: int, exc: CorruptImageError) -> None:
+        """A frame whose image failed strict decoding: skipped (odometry goes on), named once."""
+        with self.lock:
+            if i in self.corrupt:
+                return
+            self.corrupt[i] = exc.message
+        log.warning("skipped frame %d: %s", i, exc)
 
     def pose(self, i: int, loc: Localiser, t: float) -> None:
         T = loc.estimate(t)
@@ -228,10 +252,14 @@ def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t
     """Detector + solver for frame i at time t (deterministic mode: inline)."""
     prior = loc.prior(t)
     method.prefetch(prior.next_place)
-    if frames is not None:
-        img, ms_prepare = frames.get(i)
-    else:
-        img, ms_prepare = run.image(i, gray=not method.color), 0.0
+    try:
+        if frames is not None:
+            img, ms_prepare = frames.get(i)
+        else:
+            img, ms_prepare = run.image(i, gray=not method.color), 0.0
+    except CorruptImageError as exc:
+        rec.corrupt_frame(i, exc)
+        return
     t0 = time.perf_counter()
     obs = method.detect(img, prior.place, prior)      # an image or its prepare() result
     t1 = time.perf_counter()
@@ -277,7 +305,7 @@ def _deterministic(method, loc, run, rec, every, progress, prefetch=True):
         bar.close()
 
 
-def _realtime(method, loc, run, rec, speed, progress):
+def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10):
     from tqdm import tqdm
 
     ft = rec.times
@@ -294,7 +322,11 @@ def _realtime(method, loc, run, rec, speed, progress):
                 t = max(float(ft[i]), t_start)
                 prior = loc.prior(t)
                 method.prefetch(prior.next_place)
-                img = run.image(i, gray=not method.color)
+                try:
+                    img = run.image(i, gray=not method.color)
+                except CorruptImageError as exc:
+                    rec.corrupt_frame(i, exc)
+                    continue
                 t0 = time.perf_counter()
                 obs = method.detect(img, prior.place, prior)   # detect() runs prepare() itself
                 solve_box.put((i, t, prior, obs, 1e3 * (time.perf_counter() - t0)))
@@ -326,15 +358,32 @@ def _realtime(method, loc, run, rec, speed, progress):
     wall0 = time.perf_counter()
     pending: list[int] = []
     bar = tqdm(total=len(ft), desc=f"localise {run.name} (real time x{speed:g})", unit="frame", disable=not progress)
+    odo_next = 1                 # next odometry sample to integrate
+    queue_max = coalesced = 0
+    lag_max = 0.0
     try:
         for t, kind, k in events:
             if errors:
                 break
+            if kind == 0 and k < odo_next:
+                continue                     # already integrated as part of a composed increment
             delay = wall0 + (t - t0_data) / speed - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
+            now = t0_data + (time.perf_counter() - wall0) * speed      # the data clock
+            lag_max = max(lag_max, now - t)
             if kind == 0:
-                loc.add_odometry(t, incs[k - 1])
+                # the odometry queue: samples already due (timestamp passed) but not yet integrated
+                due = int(np.searchsorted(odo_t, now, side="right")) - k
+                queue_max = max(queue_max, due)
+                last = k + max(0, due - odometry_queue)   # compose the oldest ones into one increment
+                inc = incs[k - 1]
+                for j in range(k + 1, last + 1):
+                    inc = inc @ incs[j - 1]
+                coalesced += last - k
+                odo_next = last + 1
+                t = float(odo_t[last])
+                loc.add_odometry(t, inc)
                 while pending and ft[pending[0]] <= t:
                     i = pending.pop(0)
                     rec.pose(i, loc, max(float(ft[i]), t_start))
@@ -342,7 +391,7 @@ def _realtime(method, loc, run, rec, speed, progress):
                 loc.check_failure(t)
             else:
                 pending.append(k)
-                frames_box.put(k)
+                frames_box.put(k)            # replaces a frame still waiting: a stale frame dropped
         for i in pending:
             rec.pose(i, loc, max(float(ft[i]), t_start))
             bar.update(1)
@@ -353,7 +402,8 @@ def _realtime(method, loc, run, rec, speed, progress):
         bar.close()
     if errors:
         raise errors[0]
-    return {"frames_dropped": frames_box.dropped + solve_box.dropped, "frames_detected": frames_box.delivered}
+    return {"frames_dropped": frames_box.dropped + solve_box.dropped, "frames_detected": frames_box.delivered,
+            "odometry_queue_max": queue_max, "odometry_coalesced": coalesced, "lag_max_s": lag_max}
 
 
 def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signatures", every: int = 4,
@@ -387,7 +437,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     wall0 = time.perf_counter()
     try:
         if realtime:
-            extra = _realtime(method, loc, run, rec, float(speed), progress)
+            extra = _realtime(method, loc, run, rec, float(speed), progress, int(cfg["odometry_queue"]))
         else:
             _deterministic(method, loc, run, rec, every, progress, bool(cfg["prefetch"]))
     finally:
@@ -411,7 +461,8 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     }
     return ReplayResult(run, method.name, "realtime" if realtime else "deterministic", None if realtime else every,
                         rec.times, rec.poses, rec.places, rec.detections, rec.inliers, rec.localised, resets,
-                        rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times), timings)
+                        rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times),
+                        dict(sorted(rec.corrupt.items())), timings)
 
 
 def localise(map_root, run_root, out, method: str = "signatures", every: int = 4, realtime: bool = False,

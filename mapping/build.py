@@ -31,12 +31,14 @@ The command line is ``scenesig build-map RUN... --reference RUN --out maps/NAME 
 from __future__ import annotations
 
 import json
-import os
+import logging
 import time
 from pathlib import Path
 
 import numpy as np
 
+from surveys.errors import CorruptImageError
+from surveys.io import append_line
 from surveys.settings import merge_settings
 from surveys.geometry import invert
 from surveys.run import SurveyRun
@@ -50,7 +52,9 @@ from mapping.refine import Detections, REASONS, refine_landmarks
 from mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
 from surveys.io import atomic_write_bytes
 
-__all__ = ["default_config", "build_map", "build_place", "load_config"]
+__all__ = ["default_config", "build_map", "build_place", "vet_images", "load_config"]
+
+log = logging.getLogger(__name__)
 
 default_config = {
     "places": {},                 # overrides of mapping.places.default_config
@@ -267,8 +271,38 @@ def _place_task(place, views, negatives, config):
     return place.index, build_place(place, views, negatives, config)
 
 
+def vet_images(runs: list[SurveyRun], jobs: int = 1, progress: bool = True) -> list[list]:
+    """Strictly decode every frame of every run; per run, the ``(frame, CorruptImageError)`` that fail.
+
+    A map mines signatures from its training images, so a truncated frame (decoded grey by a lenient
+    decoder) must never reach it: this finds every one before hours of mining, not when a worker
+    trips over it.  Decoding runs on ``jobs`` threads (libjpeg-turbo releases the GIL).
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tqdm import tqdm
+
+    def check(item):
+        r, i = item
+        try:
+            runs[r].image(i, gray=True)
+            return None
+        except CorruptImageError as exc:
+            return r, i, exc
+
+    items = [(r, i) for r, run in enumerate(runs) for i in range(len(run))]
+    bad: list[list] = [[] for _ in runs]
+    with ThreadPoolExecutor(max_workers=max(1, int(jobs))) as pool:
+        for res in tqdm(pool.map(check, items, chunksize=16), total=len(items), desc="build-map: checking images",
+                        unit="frame", disable=not progress):
+            if res is not None:
+                bad[res[0]].append((res[1], res[2]))
+    return bad
+
+
 def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, scheduler: str | None = None,
-              config: dict | None = None, progress: bool = True, places_subset=None) -> dict:
+              config: dict | None = None, progress: bool = True, places_subset=None,
+              skip_corrupt: bool = False) -> dict:
     """Build (or resume) a map from survey runs; returns the build summary (also written to disk).
 
     Parameters
@@ -279,6 +313,11 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     jobs : places built in parallel with joblib (ignored with ``scheduler``).
     scheduler : Dask scheduler address (``tcp://host:port``) or a ``distributed.Client``.
     places_subset : optional iterable of place indices to build (others are left for a later resume).
+    skip_corrupt : every frame is decoded strictly first (:func:`vet_images`); a truncated or corrupt
+        one stops the build with a :class:`surveys.errors.CorruptImageError` naming it, unless this is
+        set: then such frames are left out of the runs (listed in the manifest's parameters, so a
+        resume must leave out the same ones) and counted in ``build_summary.json``
+        (``frames_corrupt``, ``corrupt_frames``).
     """
     from tqdm import tqdm
 
@@ -288,10 +327,26 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     names = [r.name for r in train]
     if len(set(names)) != len(names):
         raise ValueError(f"training runs must have distinct names, got {names}")
+    bad = vet_images(train, jobs, progress)
+    corrupt = [(run, i, exc) for run, b in zip(train, bad) for i, exc in b]
+    if corrupt and not skip_corrupt:
+        _, _, exc = corrupt[0]
+        more = f" (and {len(corrupt) - 1} more corrupt frames)" if len(corrupt) > 1 else ""
+        raise CorruptImageError(exc.path, f"{exc.message}{more}; build-map --skip-corrupt leaves such frames out")
+    left_out = {}
+    if corrupt:
+        for run, b in zip(train, bad):
+            if b:
+                log.warning("%s: leaving out %d corrupt frames (first: %s)", run.name, len(b), b[0][1])
+                left_out[run.name] = [run.frame_files[i] for i, _ in b]
+        train = [run.without_frames([i for i, _ in b]) if b else run for run, b in zip(train, bad)]
+        reference = train[0]
     places = places_mod.define_places(reference, cfg["places"])
     if not places:
         raise ValueError(f"reference run {reference.name!r} is too short to define a place")
     params = {"config": cfg, "reference": reference.name, "runs": names}
+    if left_out:                 # only then: maps built from clean runs keep their bytes
+        params["frames_left_out"] = left_out
     writer = MapWriter(out, reference.camera, reference.T_vehicle_camera, params)
 
     todo = [p for p in places if not writer.has_place(p.index)
@@ -361,7 +416,9 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
         for m, T in zip(metas, truth):
             m["extra"]["T_truth_place"] = T.tolist()
     writer.finalise(metas)
-    return _write_summary(out, places, stats, time.perf_counter() - t0)
+    corrupt_files = [str(run.root / f) if run.root is not None else f
+                     for run in train for f in left_out.get(run.name, [])]
+    return _write_summary(out, places, stats, time.perf_counter() - t0, corrupt_files)
 
 
 def _georef_observations(out: Path, places) -> dict:
@@ -376,13 +433,10 @@ def _georef_observations(out: Path, places) -> dict:
 def _append_stats(out: Path, st: dict) -> None:
     """Journal one place's build stats just before its file is written, so they survive an interruption
     (a resumed build skips the place and would otherwise lose them); a later line for a place wins."""
-    with (Path(out) / "build_stats.jsonl").open("a") as fh:
-        fh.write(json.dumps(st) + "\n")
-        fh.flush()
-        os.fsync(fh.fileno())
+    append_line(Path(out) / "build_stats.jsonl", json.dumps(st))
 
 
-def _write_summary(out: Path, places, stats: dict, seconds: float) -> dict:
+def _write_summary(out: Path, places, stats: dict, seconds: float, corrupt_files=()) -> dict:
     """``build_summary.json`` from every place's stats in ``build_stats.jsonl`` (this and earlier runs)."""
     path = out / "build_summary.json"
     per_place_path = out / "build_stats.jsonl"
@@ -418,6 +472,9 @@ def _write_summary(out: Path, places, stats: dict, seconds: float) -> dict:
         "landmark_depth_rel_error_median_single_depth": float(np.median(single)) if single else None,
         "landmarks_single_depth": len(single),
         "rejected": rejected,
+        # training frames left out because their image failed strict decoding (--skip-corrupt)
+        "frames_corrupt": len(corrupt_files),
+        "corrupt_frames": list(corrupt_files),
         "seconds": seconds,
     }
     atomic_write_bytes(path, (json.dumps(summary, indent=2) + "\n").encode())

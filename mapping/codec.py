@@ -318,20 +318,29 @@ def decode_place(raw: bytes, path: Path, index: int | None = None) -> PlaceData:
     try:
         fmt = json.loads(arrays.pop("format").tobytes())
         meta = json.loads(arrays.pop("meta").tobytes())
-    except (ValueError, UnicodeDecodeError) as exc:
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
         raise DataError(path, f"bad JSON in the place file's format/meta entry: {exc}") from None
+    if not isinstance(fmt, dict) or not isinstance(meta, dict):
+        raise DataError(path, "the place file's format/meta entries must be JSON objects")
     if fmt.get("format") != FORMAT_NAME or fmt.get("format_version") not in READABLE_VERSIONS:
         raise DataError(path, f"place file is {fmt.get('format')!r} version {fmt.get('format_version')!r}; "
                               f"this scenesig reads {FORMAT_NAME!r} versions {list(READABLE_VERSIONS)}")
     if index is not None and fmt.get("place") != index:
         raise DataError(path, f"place file holds place {fmt.get('place')}, expected place {index}")
     dtypes = fmt.get("dtypes", {})
-    for k, enc in fmt.get("float16_planes", {}).items():
+    planes = fmt.get("float16_planes", {})
+    if not isinstance(dtypes, dict) or not isinstance(planes, dict):
+        raise DataError(path, "bad 'dtypes' or 'float16_planes' in the place file's format entry")
+    for k, enc in planes.items():
         try:
             arrays[k] = _from_planes(arrays[k], enc["shape"])
         except (KeyError, TypeError, ValueError) as exc:
             raise DataError(path, f"bad float16 planes for {k!r}: {exc}") from None
-    restore = {k: (v.astype(dtypes[k]) if k in dtypes and str(v.dtype) != dtypes[k] else v) for k, v in arrays.items()}
+    try:
+        restore = {k: (v.astype(dtypes[k]) if k in dtypes and str(v.dtype) != dtypes[k] else v)
+                   for k, v in arrays.items()}
+    except (TypeError, ValueError) as exc:
+        raise DataError(path, f"bad dtype in the place file's format entry: {exc}") from None
     kf = restore.pop("keyframe").tobytes()
     try:
         return PlaceData(

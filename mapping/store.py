@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import threading
 from collections import OrderedDict, namedtuple
 from dataclasses import dataclass, field
@@ -45,7 +44,7 @@ import numpy as np
 
 from surveys.validation import check_pose
 from surveys.errors import DataError
-from surveys.io import atomic_write_bytes, fsync_dir
+from surveys.io import append_line, atomic_write_bytes, fsync_dir, make_dirs, remove_stale_temps
 
 from surveys.geometry import Camera, yaw_of
 
@@ -145,7 +144,7 @@ class MapWriter:
             "storage": {"float16_tol": self.float16_tol, "float16_min_size": self.float16_min_size,
                         "score_tol": self.score_tol if score_fn is not None else None},
         }
-        (self.root / PLACES_DIR).mkdir(parents=True, exist_ok=True)
+        make_dirs(self.root / PLACES_DIR)
         self._done: dict[int, dict] = {}
         self._remove_stale_temp_files()
         if overwrite:
@@ -156,8 +155,7 @@ class MapWriter:
     def _remove_stale_temp_files(self):
         # Left by a killed writer: never renamed, so never part of the map.
         for folder in (self.root, self.root / PLACES_DIR):
-            for p in folder.glob(".*.tmp"):
-                p.unlink(missing_ok=True)
+            remove_stale_temps(folder)
 
     def _clear(self):
         for p in (self.root / PLACES_DIR).glob("place_*.npz"):
@@ -222,10 +220,7 @@ class MapWriter:
         atomic_write_bytes(self.root / rel, raw)
         record = {"index": index, "file": rel, "sha256": _sha256(raw), "bytes": len(raw),
                   "signatures": data.n_signatures}
-        with open(self.root / JOURNAL, "a", encoding="utf-8") as f:
-            f.write(_canonical(record) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+        append_line(self.root / JOURNAL, _canonical(record))
         self._done[index] = record
         return record
 
@@ -287,6 +282,8 @@ def _read_json(path: Path):
         raise DataError(path, f"invalid JSON: {exc.msg}", line=exc.lineno) from None
     except UnicodeDecodeError as exc:
         raise DataError(path, f"not UTF-8 text: {exc}") from None
+    except (ValueError, RecursionError) as exc:   # e.g. a 5000-digit integer, nesting too deep
+        raise DataError(path, f"invalid JSON: {exc}") from None
 
 
 def _read_journal(path: Path):
@@ -475,46 +472,69 @@ class MapStore:
         return int(self._idx[np.argmin(d)])
 
 
+def _matrix44(v) -> bool:
+    """True if ``v`` is a finite 4x4 matrix (nested lists of numbers)."""
+    try:
+        m = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return m.shape == (4, 4) and bool(np.isfinite(m).all())
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
 def _validate_manifest(doc, path: Path) -> None:
+    """Every field :class:`MapStore` uses has the right type and shape; DataError naming ``path``."""
     if not isinstance(doc, dict):
         raise DataError(path, "manifest must be a JSON object")
     if doc.get("format") != FORMAT_NAME:
         raise DataError(path, f"not a scenesig map manifest (format is {doc.get('format')!r}, expected "
                               f"{FORMAT_NAME!r})")
     version = doc.get("format_version")
-    if version not in READABLE_VERSIONS:
+    if not _is_int(version) or version not in READABLE_VERSIONS:
         raise DataError(path, f"map format version {version!r} is not supported: this scenesig "
                               f"({software_version()}) reads version {FORMAT_VERSION}; rebuild the map "
                               f"(built by scenesig {doc.get('software', '?')})")
     for key in ("software", "camera", "T_vehicle_camera", "params", "places"):
         if key not in doc:
             raise DataError(path, f"manifest lacks '{key}'")
+    cam = doc["camera"]
     try:
-        Camera.from_dict(doc["camera"])
-    except (KeyError, TypeError, ValueError) as exc:
+        c = Camera.from_dict(cam)
+        ok = all(np.isfinite([c.fx, c.fy, c.cx, c.cy])) and c.fx > 0 and c.fy > 0 and c.width > 0 and c.height > 0
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
         raise DataError(path, f"bad camera entry: {exc!r}") from None
-    if np.asarray(doc["T_vehicle_camera"], dtype=float).shape != (4, 4):
-        raise DataError(path, "T_vehicle_camera must be a 4x4 matrix")
+    if not ok:
+        raise DataError(path, "bad camera entry: focal lengths and size must be positive and finite")
+    if not _matrix44(doc["T_vehicle_camera"]):
+        raise DataError(path, "T_vehicle_camera must be a finite 4x4 matrix")
+    if not isinstance(doc["params"], dict):
+        raise DataError(path, "'params' must be an object")
     if not isinstance(doc["places"], list):
         raise DataError(path, "'places' must be a list")
     seen = set()
+    need = {"index": _is_int, "T_world_place": _matrix44, "neighbours": lambda v: isinstance(v, list),
+            "file": lambda v: isinstance(v, str) and bool(v), "sha256": lambda v: isinstance(v, str),
+            "bytes": _is_int, "signatures": _is_int, "extra": lambda v: isinstance(v, dict)}
+    optional = {"signatures", "extra"}
     for i, p in enumerate(doc["places"]):
-        need = {"index", "T_world_place", "neighbours", "file", "sha256", "bytes"}
-        if not isinstance(p, dict) or not need <= set(p):
-            raise DataError(path, f"places[{i}] lacks {sorted(need - set(p or {}))}")
-        try:
-            ok = np.asarray(p["T_world_place"], dtype=float).shape == (4, 4)
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise DataError(path, f"places[{i}] (place {p['index']}): T_world_place must be a 4x4 matrix")
+        if not isinstance(p, dict):
+            raise DataError(path, f"places[{i}] must be an object")
+        missing = sorted(set(need) - optional - set(p))
+        if missing:
+            raise DataError(path, f"places[{i}] lacks {missing}")
+        for key, valid in need.items():
+            if key in p and not valid(p[key]):
+                raise DataError(path, f"places[{i}] (place {p['index']!r}): bad '{key}' {str(p[key])[:60]!r}")
         if p["index"] in seen:
             raise DataError(path, f"place {p['index']} listed twice")
         seen.add(p["index"])
         if Path(p["file"]).is_absolute() or ".." in Path(p["file"]).parts:
             raise DataError(path, f"place {p['index']}: file {p['file']!r} must be inside the map folder")
     for p in doc["places"]:
-        bad = [n for n in p["neighbours"] if n not in seen]
+        bad = [n for n in p["neighbours"] if not _is_int(n) or n not in seen]
         if bad:
             raise DataError(path, f"place {p['index']}: neighbours {bad} are not places of this map")
 

@@ -26,6 +26,7 @@ COMMANDS = (
     "experiment",
     "bench",
     "importers",
+    "check",
 )
 
 #: second-level command groups (``scenesig GROUP ACTION``); a group appears once a command uses it

@@ -436,6 +436,9 @@ def summary_rows(outputs: list) -> list[dict]:
                      "localised_fraction": m.get("localised_fraction"), "failures": m.get("failures"),
                      "failures_per_km": m.get("failures_per_km"),
                      "blind_fraction_over_20m": m.get("blind_fraction_over_20m"), "distance_m": m.get("distance_m"),
+                     # frames skipped because their image failed strict decoding, and (real time)
+                     # frames dropped to keep up: None where the output predates these counts
+                     "frames_corrupt": m.get("frames_corrupt"), "frames_dropped": m.get("frames_dropped"),
                      "folder": str(o.folder)})
     return rows
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from mapping.store import MapStore
 from surveys.geometry import interpolate_poses
-from surveys.io import atomic_path, atomic_write_text
+from surveys.io import atomic_path, atomic_write_text, make_dirs
 from surveys.run import SurveyRun
 
 from .experiments import MatchingResult, dead_reckoning, frame_distances, ins_errors, speed
@@ -39,7 +39,7 @@ def _plt():
 
 def _savefig(fig, path: Path) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_dirs(path.parent)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100)
     _plt().close(fig)
@@ -108,7 +108,7 @@ def plot_matching_heatmaps(result: MatchingResult, store: MapStore, method: str,
 def write_matching(result: MatchingResult, store: MapStore, out, heat_places: int = 8) -> dict:
     """``matching.json`` and the figures in ``out``; returns ``{name: path}``."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
     paths = {"json": out / "matching.json"}
     atomic_write_text(paths["json"], json.dumps(result.to_json(), indent=1, allow_nan=False) + "\n")
     paths["counts"] = plot_matching_counts(result, out / "matching_counts.png")
@@ -200,7 +200,7 @@ def localisation_figures(outputs: list, out, runs: dict | None = None, d_max: fl
     Returns ``{"runs": {run: path}, "dead_reckoning": path, "curves": {method: {...}}, "d_grid": list}``.
     """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
     by_run: dict = {}
     for o in outputs:
         by_run.setdefault(o.run, []).append(o)

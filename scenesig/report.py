@@ -24,14 +24,13 @@ from __future__ import annotations
 import html
 import json
 import os
-import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
 from surveys.errors import DataError
-from surveys.io import atomic_write_text
+from surveys.io import atomic_write_bytes, atomic_write_text, make_dirs
 
 from .experiments import find_localise_outputs, find_runs, read_localise_output, summary_rows
 from .plots import localisation_figures
@@ -88,7 +87,9 @@ def _summary_table(rows: list[dict], out: Path) -> str:
             "<th>lateral median (m)</th><th>heading median (&deg;)</th>"
             "<th title='relative to the map: without the map&#39;s own georeferencing error'>lateral vs map (m)</th>"
             "<th>localised fraction</th>"
-            "<th>failures</th><th>failures / km</th><th>blind &gt; 20 m</th><th>distance (m)</th></tr>")
+            "<th>failures</th><th>failures / km</th><th>blind &gt; 20 m</th><th>distance (m)</th>"
+            "<th title='frames skipped: their image is truncated or corrupt (strict decoding)'>corrupt frames</th>"
+            "<th title='real-time replay: stale frames dropped to keep up'>dropped frames</th></tr>")
     body = []
     for r in rows:
         cls = " class='sig'" if r["method"] == "signatures" else ""
@@ -101,7 +102,9 @@ def _summary_table(rows: list[dict], out: Path) -> str:
             f"<td>{_fmt(r.get('lateral_map_median_m'))}</td>"
             f"<td>{_fmt(r['localised_fraction'], pct=True)}</td><td>{_fmt(r['failures'])}</td>"
             f"<td>{_fmt(r['failures_per_km'], 1)}</td><td class='{bcls}'>{_fmt(blind, pct=True)}</td>"
-            f"<td>{_fmt(r['distance_m'], 0)}</td></tr>")
+            f"<td>{_fmt(r['distance_m'], 0)}</td>"
+            f"<td class='{'bad' if r.get('frames_corrupt') else ''}'>{_fmt(r.get('frames_corrupt'))}</td>"
+            f"<td>{_fmt(r.get('frames_dropped'))}</td></tr>")
     return f"<table id='summary'>{head}{''.join(body)}</table>"
 
 
@@ -177,11 +180,12 @@ def build_report(results, out, runs=None, title: str = "scenesig localisation re
     found = find_runs(results, names)
     if runs:
         found.update(find_runs(runs, names))
-    fig_dir = out / "figures"
-    if fig_dir.exists():
-        shutil.rmtree(fig_dir)
-    fig_dir.mkdir(parents=True)
+    # figures are replaced one by one (atomically) and stale ones removed only once the page is
+    # written, so a report that fails half way (disk full) leaves the previous page whole
+    fig_dir = make_dirs(out / "figures")
+    before = {p for p in fig_dir.rglob("*") if p.is_file()}
     figs = localisation_figures(outputs, fig_dir, found)
+    produced = {Path(p) for p in figs["runs"].values()} | {Path(figs["dead_reckoning"])}
     rows = summary_rows(outputs)
 
     parts = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
@@ -216,10 +220,11 @@ def build_report(results, out, runs=None, title: str = "scenesig localisation re
     matching = find_matching(results)
     for k, mdir in enumerate(matching):
         mfig = fig_dir / (f"matching_{k}" if len(matching) > 1 else "matching")
-        mfig.mkdir(parents=True, exist_ok=True)
+        make_dirs(mfig)
         pngs = sorted(mdir.glob("*.png"))
         for png in pngs:
-            shutil.copy2(png, mfig / png.name)
+            atomic_write_bytes(mfig / png.name, png.read_bytes())
+            produced.add(mfig / png.name)
         try:
             summary = json.loads((mdir / "matching.json").read_text()).get("summary", {})
         except (OSError, json.JSONDecodeError) as exc:
@@ -245,10 +250,12 @@ def build_report(results, out, runs=None, title: str = "scenesig localisation re
                    "Where matches fall: +1 per pixel inside each matched shape, averaged over the test runs.")
             parts.append(_figure(_rel(mfig / png.name, out), cap, png.stem))
     parts.append(f"<p class='meta'>Report built in {time.perf_counter() - t0:.1f} s by scenesig.</p></body></html>")
-    out.mkdir(parents=True, exist_ok=True)
     index = out / "index.html"
+    atomic_write_text(out / "report_summary.json",
+                      json.dumps({"rows": rows}, indent=1, allow_nan=False, default=_json_default) + "\n")
     atomic_write_text(index, "\n".join(parts))
-    atomic_write_text(out / "report_summary.json", json.dumps({"rows": rows}, indent=1, allow_nan=False, default=_json_default) + "\n")
+    for stale in before - produced:      # figures of results no longer on the page
+        stale.unlink(missing_ok=True)
     return index
 
 

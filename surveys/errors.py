@@ -22,3 +22,25 @@ class DataError(ValueError):
         if line is not None:
             where += f":{line}"
         super().__init__(f"{where}: {message}")
+
+    def __reduce__(self):
+        # picklable with its fields, so a DataError raised in a joblib / Dask worker reaches the driver
+        # as itself (the default would call __init__ with the formatted message only)
+        return (self.__class__, (self.path, self.message, self.line))
+
+
+class CorruptImageError(DataError):
+    """An image that is missing, truncated or does not decode cleanly (see :mod:`surveys.images`).
+
+    A separate type because a corrupt camera frame is often survivable: the localiser skips the
+    frame, and ``build-map --skip-corrupt`` leaves it out, where any other bad input stops the job.
+    """
+
+
+class OutputError(DataError):
+    """A result could not be written (disk full, read-only folder...).
+
+    A :class:`DataError` so that the command line's one error handler reports it as
+    ``scenesig: error: FILE: reason`` (exit 2) instead of a traceback; ``path`` is the file that was
+    being written, which is left as it was (see :mod:`surveys.io`).
+    """

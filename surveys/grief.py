@@ -488,9 +488,6 @@ def _load_sequence(root: Path) -> GriefDataset:
 
 
 def _imread(path: Path, gray: bool) -> np.ndarray:
-    import cv2  # local: keeps `import surveys.grief` light for tools that only need the metadata
+    from surveys.images import read_image  # local: keeps `import surveys.grief` light for metadata-only tools
 
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
-    if img is None:
-        raise DataError(path, "cannot read or decode image")
-    return img
+    return read_image(path, gray)

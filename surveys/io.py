@@ -1,19 +1,46 @@
-"""Atomic file writes: a reader (or a crash) sees the old file or the whole new one, never a part.
+"""Atomic file writes: a reader (or a crash, or a rerun after a full disk) sees the old file or the
+whole new one, never a part.
 
-Every writer of the project goes through here: the map store's place files and manifest, survey-run
-TUM files, the localiser's outputs, reports, figures and benchmark JSON.  The new content goes to a
-hidden temporary file beside the target (same folder, so the rename never crosses file systems), is
-flushed and fsync'ed, and replaces the target with ``os.replace``; the folder is fsync'ed so the
-rename survives a power cut.
+Every writer of the project goes through here: the map store's place files, manifest and journals,
+survey-run TUM files, the localiser's outputs, reports, figures and benchmark JSON.  The new content
+goes to a hidden temporary file beside the target (same folder, so the rename never crosses file
+systems), is fsync'ed, and replaces the target with ``os.replace``; the folder is fsync'ed so the
+rename survives a power cut.  Journals (``journal.jsonl``, ``build_stats.jsonl``) grow by
+:func:`append_line`, which cuts a failed append back off, so a torn line never precedes the next one.
+
+A failed write (ENOSPC, EACCES, EROFS, EDQUOT...) removes its temporary file and raises
+:class:`surveys.errors.OutputError` naming the file, which the command line reports as
+``scenesig: error: FILE: reason`` (exit 2).  The final name is untouched, so whatever an earlier run
+finished is kept and a rerun after freeing space resumes from it.  Bytes go through ``os.write`` on
+a raw descriptor, so a test can inject a full disk at the system-call boundary, where a real one
+strikes.
 """
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_path", "atomic_folder", "temp_name", "fsync_dir"]
+from .errors import OutputError
+
+__all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_path", "atomic_folder", "append_line", "make_dirs",
+           "temp_name", "remove_stale_temps", "fsync_dir", "output_error"]
+
+_HINTS = {errno.ENOSPC: "free some space and run the command again: finished files are kept",
+          errno.EDQUOT: "free some space and run the command again: finished files are kept",
+          errno.EACCES: "the folder is not writable: fix its permissions or choose another output folder",
+          errno.EPERM: "the folder is not writable: fix its permissions or choose another output folder",
+          errno.EROFS: "the file system is read-only: choose another output folder"}
+
+
+def output_error(path, exc: OSError) -> OutputError:
+    """An :class:`OutputError` for ``path`` from the OSError a write raised."""
+    code = errno.errorcode.get(exc.errno, "") if exc.errno else ""
+    reason = f"could not write: {exc.strerror or exc}" + (f" ({code})" if code else "")
+    hint = _HINTS.get(exc.errno)
+    return OutputError(path, reason + (f"; {hint}" if hint else ""))
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -39,9 +66,25 @@ def temp_name(path: Path, keep_suffix: bool = False) -> Path:
     return path.parent / f".{path.name}.{os.getpid()}.tmp"
 
 
+def remove_stale_temps(folder) -> None:
+    """Delete temporary files a killed writer left in ``folder`` (never renamed: never results)."""
+    for p in Path(folder).glob(".*.tmp*"):
+        p.unlink(missing_ok=True)
+
+
 def fsync_dir(folder) -> None:
     """Make renames and removals in ``folder`` durable."""
     _fsync_dir(Path(folder))
+
+
+def make_dirs(folder) -> Path:
+    """``mkdir -p`` that reports a failure as :class:`OutputError` naming the folder."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise output_error(folder, exc) from exc
+    return folder
 
 
 def _replace(tmp: Path, path: Path) -> None:
@@ -49,18 +92,32 @@ def _replace(tmp: Path, path: Path) -> None:
     _fsync_dir(path.parent)
 
 
+def _write_all(fd: int, data) -> None:
+    view = memoryview(data).cast("B")
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
+
+
 def atomic_write_bytes(path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically."""
+    """Write ``data`` to ``path`` atomically; :class:`OutputError` (the file left as it was) on failure."""
     path = Path(path)
     tmp = temp_name(path)
     try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            _write_all(fd, data)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         _replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
+    except BaseException as exc:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        if isinstance(exc, OSError):
+            raise output_error(path, exc) from exc
         raise
 
 
@@ -73,16 +130,24 @@ def atomic_write_text(path, text: str, encoding: str = "utf-8") -> None:
 def atomic_path(path):
     """``with atomic_path(p) as tmp: write(tmp)`` -- for writers that want a file name (e.g.
     ``fig.savefig(tmp)``): ``tmp`` replaces ``p`` when the block ends without an exception, and is
-    removed otherwise."""
+    removed otherwise (an OSError becomes :class:`OutputError` naming ``p``)."""
     path = Path(path)
     tmp = temp_name(path, keep_suffix=True)
     try:
         yield tmp
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         _replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
+    except BaseException as exc:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        if isinstance(exc, OSError):
+            raise output_error(path, exc) from exc
         raise
 
 
@@ -119,3 +184,28 @@ def atomic_folder(folder, overwrite: bool = False, what: str = "folder"):
     else:
         os.replace(tmp, folder)
     _fsync_dir(folder.parent)
+def append_line(path, line: str) -> None:
+    """Append ``line`` (a newline is added) to a journal and fsync it.
+
+    On failure the file is cut back to its previous length (best effort) before
+    :class:`OutputError` is raised, so a torn line never precedes a later append.
+    """
+    path = Path(path)
+    data = (line.rstrip("\n") + "\n").encode("utf-8")
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    except OSError as exc:
+        raise output_error(path, exc) from exc
+    try:
+        size = os.fstat(fd).st_size
+        try:
+            _write_all(fd, data)
+            os.fsync(fd)
+        except OSError as exc:
+            try:
+                os.ftruncate(fd, size)
+            except OSError:
+                pass
+            raise output_error(path, exc) from exc
+    finally:
+        os.close(fd)

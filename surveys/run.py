@@ -31,12 +31,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DataError
+from .errors import CorruptImageError, DataError
+from .images import read_image
 from .geometry import Camera, interpolate_poses, pose_to_xyzquat, xyzquat_to_pose
 from .io import atomic_folder
 from .tum import read_tum, write_tum
 
-__all__ = ["SurveyRun", "read_run", "write_run", "FORMAT_VERSION", "dump_toml"]
+__all__ = ["SurveyRun", "read_run", "write_run", "FORMAT_VERSION", "dump_toml", "read_meta", "read_frames",
+           "read_odometry", "read_gps"]
 
 FORMAT_VERSION = 1
 _IMAGE_MAGIC = {b"\xff\xd8\xff": "jpeg", b"\x89PNG": "png"}
@@ -76,17 +78,26 @@ class SurveyRun:
         return self.root / self.frame_files[i]
 
     def image(self, i: int, gray: bool = False) -> np.ndarray:
-        """Load frame ``i`` (BGR uint8, or gray) from disk; nothing is cached."""
-        import cv2
+        """Load frame ``i`` (BGR uint8, or gray) from disk, decoded strictly (:mod:`surveys.images`).
 
+        Raises :class:`surveys.errors.CorruptImageError` (a :class:`DataError`) naming the file if it
+        is missing, truncated, corrupt or not the size ``run.toml`` states; nothing is cached.
+        """
         path = self.image_path(i)
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
-        if img is None:
-            raise DataError(path, "image missing or not decodable")
+        img = read_image(path, gray)        # strict: a truncated or corrupt frame raises
         h, w = img.shape[:2]
         if (w, h) != (self.camera.width, self.camera.height):
-            raise DataError(path, f"image is {w}x{h} but run.toml says {self.camera.width}x{self.camera.height}")
+            raise CorruptImageError(path, f"image is {w}x{h} but run.toml says "
+                                          f"{self.camera.width}x{self.camera.height}")
         return img
+
+    def without_frames(self, drop) -> "SurveyRun":
+        """The same run with the frames ``drop`` (indices) left out (e.g. corrupt images)."""
+        import dataclasses
+
+        keep = np.setdiff1d(np.arange(len(self)), np.asarray(list(drop), dtype=int))
+        return dataclasses.replace(self, frame_times=self.frame_times[keep],
+                                   frame_files=[self.frame_files[i] for i in keep])
 
     def pose_at(self, t, which: str = "groundtruth") -> np.ndarray:
         """Interpolated pose(s) at time(s) ``t`` from 'groundtruth' (INS), 'truth' or 'odometry'."""
@@ -138,24 +149,30 @@ def dump_toml(data: dict, _prefix: str = "") -> str:
 
 
 # --------------------------------------------------------------------------------------- reading
-def _read_csv(path: Path, header: list[str]) -> np.ndarray | tuple[np.ndarray, list[str]]:
+def _read_csv(path: Path, header: list[str]) -> list[tuple[int, list[str]]]:
     if not path.is_file():
         raise DataError(path, "file not found")
-    with path.open(newline="") as fh:
-        reader = csv.reader(fh)
-        try:
-            first = next(reader)
-        except StopIteration:
-            raise DataError(path, "empty file", 1) from None
-        if [h.strip() for h in first] != header:
-            raise DataError(path, f"header must be {','.join(header)!r}, found {','.join(first)!r}", 1)
-        rows = []
-        for n, row in enumerate(reader, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(header):
-                raise DataError(path, f"expected {len(header)} columns, found {len(row)}", n)
-            rows.append((n, [c.strip() for c in row]))
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            reader = csv.reader(fh)
+            try:
+                first = next(reader)
+            except StopIteration:
+                raise DataError(path, "empty file", 1) from None
+            if [h.strip() for h in first] != header:
+                raise DataError(path, f"header must be {','.join(header)!r}, found {','.join(first)!r}", 1)
+            rows = []
+            for row in reader:
+                n = reader.line_num
+                if not row or all(not c.strip() for c in row):
+                    continue
+                if len(row) != len(header):
+                    raise DataError(path, f"expected {len(header)} columns, found {len(row)}", n)
+                rows.append((n, [c.strip() for c in row]))
+    except UnicodeDecodeError as exc:
+        raise DataError(path, f"not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except csv.Error as exc:  # e.g. a NUL byte, an unterminated quote
+        raise DataError(path, f"not valid CSV ({exc})", getattr(reader, "line_num", None) or None) from None
     if not rows:
         raise DataError(path, "no data rows")
     return rows
@@ -188,7 +205,7 @@ def _require(path: Path, table: dict, key: str, kind):
     v = table[key]
     if kind is float and isinstance(v, int) and not isinstance(v, bool):
         v = float(v)
-    if not isinstance(v, kind):
+    if not isinstance(v, kind) or (kind is int and isinstance(v, bool)):
         raise DataError(path, f"key {key!r} must be {kind.__name__}, found {type(v).__name__}")
     if kind is float and not math.isfinite(v):
         raise DataError(path, f"key {key!r} is not finite")
@@ -196,7 +213,7 @@ def _require(path: Path, table: dict, key: str, kind):
 
 
 def _image_ok(path: Path) -> str | None:
-    """Cheap decodability check (exists, known magic bytes); full decoding happens lazily."""
+    """Cheap check (exists, known magic bytes); strict decoding happens when a frame is used."""
     try:
         with path.open("rb") as fh:
             head = fh.read(8)
@@ -208,32 +225,23 @@ def _image_ok(path: Path) -> str | None:
     return "not a JPEG or PNG image"
 
 
-def read_run(folder, check_images: bool = True) -> SurveyRun:
-    """Read and validate a survey-run folder.
+def read_meta(path) -> dict:
+    """Read and validate ``run.toml``.
 
-    Parameters
-    ----------
-    folder : path of the run folder.
-    check_images : check that every image file exists and is a JPEG/PNG (headers only) and that the
-        first one decodes at the size ``run.toml`` states. Images themselves load lazily.
-
-    Raises
-    ------
-    DataError
-        naming the file (and line) of the first problem found.
+    Returns
+    -------
+    dict with ``name``, ``conditions``, ``camera`` (:class:`Camera`), ``T_vehicle_camera`` (4x4),
+    ``rates`` (dict of positive floats), ``odometry_source`` and ``metadata``.
     """
-    root = Path(folder)
-    if not root.is_dir():
-        raise DataError(root, "survey run folder not found")
-    meta_path = root / "run.toml"
+    meta_path = Path(path)
     if not meta_path.is_file():
         raise DataError(meta_path, "file not found (every survey run needs run.toml)")
     try:
-        meta = tomllib.loads(meta_path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        meta = tomllib.loads(meta_path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:   # TOMLDecodeError is a ValueError
         raise DataError(meta_path, f"not valid TOML: {exc}") from None
     version = meta.get("format_version")
-    if version != FORMAT_VERSION:
+    if version != FORMAT_VERSION or isinstance(version, bool):
         raise DataError(meta_path, f"format_version {version!r} not supported (this scenesig reads {FORMAT_VERSION})")
     name = _require(meta_path, meta, "name", str)
     conditions = meta.get("conditions", [])
@@ -247,9 +255,16 @@ def read_run(folder, check_images: bool = True) -> SurveyRun:
     for key in ("width", "height"):
         if _require(meta_path, cam_t, key, int) <= 0:
             raise DataError(meta_path, f"camera.{key} must be positive")
+    dist = cam_t.get("distortion", [])
+    if not isinstance(dist, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                             and math.isfinite(v) for v in dist):
+        raise DataError(meta_path, "camera.distortion must be a list of finite numbers")
     camera = Camera.from_dict(cam_t)
     ext = _require(meta_path, meta, "extrinsic", dict)
-    T_vc = np.asarray(ext.get("T_vehicle_camera", None), dtype=float) if "T_vehicle_camera" in ext else None
+    try:
+        T_vc = np.asarray(ext["T_vehicle_camera"], dtype=float) if "T_vehicle_camera" in ext else None
+    except (TypeError, ValueError):
+        T_vc = None
     if T_vc is None or T_vc.shape != (4, 4) or not np.all(np.isfinite(T_vc)):
         raise DataError(meta_path, "extrinsic.T_vehicle_camera must be a finite 4x4 matrix")
     R = T_vc[:3, :3]
@@ -259,29 +274,79 @@ def read_run(folder, check_images: bool = True) -> SurveyRun:
     if not isinstance(rates, dict):
         raise DataError(meta_path, "[rates] must be a table")
     for k, v in rates.items():
-        if not isinstance(v, (int, float)) or not v > 0:
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not (0 < v < math.inf):
             raise DataError(meta_path, f"rates.{k} must be a positive number")
+    metadata = meta.get("metadata", {})
+    if not isinstance(metadata, dict):
+        raise DataError(meta_path, "[metadata] must be a table")
+    return {"name": name, "conditions": list(conditions), "camera": camera, "T_vehicle_camera": T_vc,
+            "rates": {k: float(v) for k, v in rates.items()},
+            "odometry_source": str(meta.get("odometry_source", "vo")), "metadata": dict(metadata)}
 
-    # frames
-    fpath = root / "frames.csv"
+
+def read_frames(path) -> tuple[np.ndarray, list[str], list[int]]:
+    """Read ``frames.csv``: (times, image files relative to the run folder, line number of each)."""
+    fpath = Path(path)
     rows = _read_csv(fpath, ["timestamp", "file"])
     ftimes = _numeric_rows(fpath, rows, slice(0, 1))[:, 0]
-    _check_increasing(fpath, ftimes, [n for n, _ in rows])
+    lines = [n for n, _ in rows]
+    _check_increasing(fpath, ftimes, lines)
     files = [r[1] for _, r in rows]
-    if check_images:
-        for (n, _), f in zip(rows, files):
-            problem = _image_ok(root / f)
-            if problem:
-                raise DataError(fpath, f"{problem}: {root / f}", n)
+    for n, f in zip(lines, files):
+        if not f or Path(f).is_absolute() or ".." in Path(f).parts:
+            raise DataError(fpath, f"image file {f!r} must be a path inside the run folder", n)
+    return ftimes, files, lines
 
-    # odometry
-    opath = root / "odometry.csv"
+
+def read_odometry(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``odometry.csv``: (times (M,), poses T_odom_vehicle (M,4,4))."""
+    opath = Path(path)
     orows = _read_csv(opath, ["timestamp", "x", "y", "z", "qx", "qy", "qz", "qw"])
     odo = _numeric_rows(opath, orows)
     _check_increasing(opath, odo[:, 0], [n for n, _ in orows])
-    zero_q = np.nonzero(np.linalg.norm(odo[:, 4:], axis=1) < 1e-9)[0]
-    if len(zero_q):
-        raise DataError(opath, "zero quaternion", orows[zero_q[0]][0])
+    qn = np.linalg.norm(odo[:, 4:], axis=1)
+    bad = np.nonzero(~((qn > 1e-9) & np.isfinite(qn)))[0]
+    if len(bad):
+        raise DataError(opath, "zero or non-normalisable quaternion", orows[bad[0]][0])
+    return odo[:, 0], xyzquat_to_pose(odo[:, 1:]).reshape(-1, 4, 4)
+
+
+def read_gps(path) -> np.ndarray:
+    """Read ``gps.csv``: (K, 4) rows ``timestamp, x, y, z``."""
+    gpath = Path(path)
+    grows = _read_csv(gpath, ["timestamp", "x", "y", "z"])
+    gps = _numeric_rows(gpath, grows)
+    _check_increasing(gpath, gps[:, 0], [n for n, _ in grows])
+    return gps
+
+
+def read_run(folder, check_images: bool = True) -> SurveyRun:
+    """Read and validate a survey-run folder.
+
+    Parameters
+    ----------
+    folder : path of the run folder.
+    check_images : check that every image file exists and is a JPEG/PNG (headers only) and that the
+        first one decodes strictly at the size ``run.toml`` states. Images themselves load lazily
+        (and strictly: :meth:`SurveyRun.image`); ``scenesig check`` decodes every one.
+
+    Raises
+    ------
+    DataError
+        naming the file (and line) of the first problem found.
+    """
+    root = Path(folder)
+    if not root.is_dir():
+        raise DataError(root, "survey run folder not found")
+    meta = read_meta(root / "run.toml")
+    fpath = root / "frames.csv"
+    ftimes, files, lines = read_frames(fpath)
+    if check_images:
+        for n, f in zip(lines, files):
+            problem = _image_ok(root / f)
+            if problem:
+                raise DataError(fpath, f"{problem}: {root / f}", n)
+    odo_t, odo_p = read_odometry(root / "odometry.csv")
 
     gt_t = gt_p = tr_t = tr_p = gps = None
     if (root / "groundtruth.tum").exists():
@@ -289,18 +354,14 @@ def read_run(folder, check_images: bool = True) -> SurveyRun:
     if (root / "truth.tum").exists():
         tr_t, tr_p = read_tum(root / "truth.tum")
     if (root / "gps.csv").exists():
-        gpath = root / "gps.csv"
-        grows = _read_csv(gpath, ["timestamp", "x", "y", "z"])
-        gps = _numeric_rows(gpath, grows)
-        _check_increasing(gpath, gps[:, 0], [n for n, _ in grows])
+        gps = read_gps(root / "gps.csv")
 
     run = SurveyRun(
-        name=name, conditions=list(conditions), camera=camera, T_vehicle_camera=T_vc,
-        rates={k: float(v) for k, v in rates.items()}, frame_times=ftimes, frame_files=files,
-        odometry_times=odo[:, 0], odometry_poses=xyzquat_to_pose(odo[:, 1:]).reshape(-1, 4, 4),
-        odometry_source=str(meta.get("odometry_source", "vo")), groundtruth_times=gt_t,
-        groundtruth_poses=gt_p, truth_times=tr_t, truth_poses=tr_p, gps=gps,
-        metadata=dict(meta.get("metadata", {})), root=root,
+        name=meta["name"], conditions=meta["conditions"], camera=meta["camera"],
+        T_vehicle_camera=meta["T_vehicle_camera"], rates=meta["rates"], frame_times=ftimes, frame_files=files,
+        odometry_times=odo_t, odometry_poses=odo_p, odometry_source=meta["odometry_source"],
+        groundtruth_times=gt_t, groundtruth_poses=gt_p, truth_times=tr_t, truth_poses=tr_p, gps=gps,
+        metadata=meta["metadata"], root=root,
     )
     if check_images:
         run.image(0, gray=True)  # decodes, and checks the size against run.toml

@@ -79,5 +79,4 @@ def format_tum(times, poses) -> str:
 
 def write_tum(path, times, poses) -> None:
     """Write a TUM file atomically (temp file + rename): a crash never leaves half a trajectory."""
-    path = Path(path)
     atomic_write_text(path, format_tum(times, poses))

@@ -38,3 +38,18 @@ def make_run(n_frames=5, with_truth=True, size=(64, 48), seed=0):
     )
     images = [rng.integers(0, 255, (h, w, 3), dtype=np.uint8) for _ in range(n_frames)]
     return run, images
+
+
+# Property-based fuzzing (tests/test_fuzz_readers.py).  Two hypothesis profiles: "scenesig-fuzz" keeps
+# the default suite fast; "scenesig-fuzz-heavy" runs many more examples -- the tests marked heavy use
+# it, and SCENESIG_FUZZ=heavy makes the default fuzz tests use it too.  Both are derandomized (a
+# fixed seed: a failure repeats) and keep no example database.
+try:
+    from hypothesis import HealthCheck, settings
+
+    FUZZ_EXAMPLES = {"scenesig-fuzz": 40, "scenesig-fuzz-heavy": 2000}
+    for _name, _n in FUZZ_EXAMPLES.items():
+        settings.register_profile(_name, max_examples=_n, deadline=None, derandomize=True, database=None,
+                                  suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+except ImportError:  # hypothesis is a test extra; test_fuzz_readers.py says it is missing
+    FUZZ_EXAMPLES = {}

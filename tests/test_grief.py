@@ -256,6 +256,6 @@ def test_undecodable_image(tmp_path):
     root = make_sequence(tmp_path / "d")
     (root / "season_01" / "000000001.png").write_bytes(b"not an image")
     ds = load(root)  # lazy: only loading the image fails
-    with pytest.raises(DataError, match="cannot read or decode") as e:
+    with pytest.raises(DataError, match="does not decode") as e:
         ds.places[1].image(1)
     assert e.value.path.name == "000000001.png"

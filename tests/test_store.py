@@ -183,20 +183,14 @@ KILL_SCRIPT = textwrap.dedent("""
             if str(dst).endswith("place_0002.npz"):
                 die()
             real(src, dst)
-        S.os.replace = replace
+        IO.os.replace = replace
     elif mode == "mid_temp_write":   # killed half-way through writing the temp file
-        real_open = open
-        class Half:
-            def __init__(self, f): self.f = f
-            def __enter__(self): return self
-            def __exit__(self, *a): self.f.close()
-            def write(self, b):
-                self.f.write(b[: len(b) // 2]); self.f.flush(); die()
-            def __getattr__(self, k): return getattr(self.f, k)
-        def fake_open(p, mode="r", *a, **k):
-            f = real_open(p, mode, *a, **k)
-            return Half(f) if "place_0002" in str(p) and "w" in mode else f
-        IO.open = fake_open
+        real_write = IO._write_all
+        def half(fd, data):
+            if "place_0002" in os.readlink(f"/proc/self/fd/{{fd}}"):
+                real_write(fd, bytes(data)[: len(data) // 2]); die()
+            real_write(fd, data)
+        IO._write_all = half
     elif mode == "after_rename":     # killed after the rename, before the journal line
         real = IO._fsync_dir
         def fsync_dir(folder):

@@ -17,6 +17,9 @@ def register(groups):
     p.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
     p.add_argument("--config", default=None,
                    help="build options (overrides of mapping.build.default_config) as JSON text or a .json file")
+    p.add_argument("--skip-corrupt", action="store_true",
+                   help="leave out frames whose image is truncated or corrupt (counted in build_summary.json) "
+                        "instead of stopping")
     p.set_defaults(_run=run)
 
 
@@ -28,6 +31,6 @@ def run(args) -> int:
     ref_path = Path(args.reference).resolve()
     reference = next((r for r in runs if r.root.resolve() == ref_path), None) or read_run(args.reference)
     summary = build_map(runs, reference, args.out, jobs=args.jobs, scheduler=args.scheduler,
-                        config=load_config(args.config))
+                        config=load_config(args.config), skip_corrupt=args.skip_corrupt)
     print(json.dumps(summary, indent=2))
     return 0

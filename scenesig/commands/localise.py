@@ -30,6 +30,6 @@ def run(args) -> int:
     metrics = localise(args.map, args.run, args.out, method=args.method, every=args.every or 4,
                        realtime=bool(args.realtime), speed=float(args.speed or 1.0))
     keys = ("method", "run", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
-            "blind_fraction_over_20m", "realtime_factor")
-    print(json.dumps({k: metrics[k] for k in keys}, indent=1))
+            "blind_fraction_over_20m", "realtime_factor", "frames_corrupt", "frames_dropped")
+    print(json.dumps({k: metrics[k] for k in keys if k in metrics}, indent=1))
     return 0
