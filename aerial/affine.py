@@ -98,7 +98,8 @@ class TripleFit:
     errors: np.ndarray
 
 
-def best_consistent_triple(src, dst, config: dict | None = None) -> TripleFit | None:
+def best_consistent_triple(src, dst, config: dict | None = None,
+                           groups=None) -> TripleFit | None:
     """The triple with the lowest minimum relative estimation error (eqs. 9-15).
 
     Parameters
@@ -109,6 +110,10 @@ def best_consistent_triple(src, dst, config: dict | None = None) -> TripleFit | 
         Their registered positions in the reference.
     config : dict, optional
         Overrides of :data:`default_config`.
+    groups : array_like (N,) of int, optional
+        When a region contributes several candidate registrations (the top NCC peaks), the
+        region each candidate belongs to: a triple takes three different regions, and a triple's
+        relative errors are measured on the candidates of the *other* regions only.
 
     Returns
     -------
@@ -119,9 +124,12 @@ def best_consistent_triple(src, dst, config: dict | None = None) -> TripleFit | 
     src = np.asarray(src, dtype=float)
     dst = np.asarray(dst, dtype=float)
     n = len(src)
-    if n < 4:
+    g = np.arange(n) if groups is None else np.asarray(groups)
+    if len(np.unique(g)) < 4:
         return None
     tri = np.array(list(combinations(range(n), 3)))                     # (M, 3)
+    gt = g[tri]
+    tri = tri[(gt[:, 0] != gt[:, 1]) & (gt[:, 0] != gt[:, 2]) & (gt[:, 1] != gt[:, 2])]
     s3, d3 = src[tri], dst[tri]
     e1, e2 = s3[:, 1] - s3[:, 0], s3[:, 2] - s3[:, 0]
     area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
@@ -135,8 +143,7 @@ def best_consistent_triple(src, dst, config: dict | None = None) -> TripleFit | 
         return None
     pred = np.einsum("mij,nj->mni", T[:, :, :2], src) + T[:, None, :, 2]   # (M, N, 2)
     err = np.linalg.norm(pred - dst[None], axis=2)
-    own = np.zeros_like(err, dtype=bool)
-    own[np.arange(len(tri))[:, None], tri] = True
+    own = (g[None, None, :] == g[tri][:, :, None]).any(axis=1)            # (M, N)
     emin = np.where(own, np.inf, err).min(axis=1)
     emin[~ok] = np.inf
     best = int(np.argmin(emin))

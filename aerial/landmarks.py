@@ -46,11 +46,11 @@ default_config = {
     "min_training_pixels": 2000,   # a type with fewer training pixels is dropped
     "training_stride": 2,          # use every n-th pixel of the library (rows and columns)
     "region_size": 64,             # sub-region side (paper: 64 x 64)
-    "threshold": 0.3,              # mean normalised likelihood a landmark region must reach
-    "regions_per_type": 5,         # at most this many regions per type (paper's figures: 3-10)
+    "threshold": 0.2,              # mean normalised likelihood a landmark region must reach
+    "regions_per_type": 8,         # at most this many regions per type (the paper shows 3-10)
     "region_spacing": 40,          # same-type regions: centres at least this far apart (px)
     "merge_distance": 32,          # regions of different types closer than this are combined
-    "min_region_std": 10.0,        # gray-level standard deviation a region needs (NCC)
+    "min_region_std": 16.0,        # gray-level standard deviation a region needs (NCC)
     "stride": 8,                   # candidate region centres are on this grid (px)
 }
 

@@ -37,7 +37,8 @@ import numpy as np
 
 from aerial import affine as affmod
 from aerial.landmarks import LandmarkModel
-from aerial.ncc import ReferenceNCC, local_match, to_gray
+from aerial.ncc import local_match, to_gray
+from aerial.sism import ReferenceImage
 from aerial.trials import sensed_centre
 from signatures.colour import (channel_histograms, exact_histogram_match,
                                local_exact_histogram_match, match_histograms)
@@ -62,6 +63,7 @@ default_config = {
     "attitude_min_ncc": 0.3,        # below this the attitude search gives no prior
     "attitude_radius_px": 32,       # first-iteration search radius around the attitude prior
     "min_ncc": 0.25,                # a region registered with a lower NCC peak is not used
+    "global_peaks": 3,              # whole-reference search: NCC peaks kept per region
     "consistency_px": 8.0,          # best triple's minimum relative error must be below this
     "affine": {},                   # overrides of aerial.affine.default_config
     "landmarks": {},                # overrides of aerial.landmarks.default_config
@@ -115,23 +117,6 @@ class Localisation:
     seconds: float = 0.0
 
 
-class _Reference:
-    """What one reference image needs for matching: full- and coarse-resolution gray, FFT NCC."""
-
-    def __init__(self, image: np.ndarray, coarse_scale: float, attitude_scale: float):
-        self.image = image
-        self.gray = to_gray(image)
-        self.coarse_scale = float(coarse_scale)
-        self.coarse = cv2.resize(self.gray, None, fx=coarse_scale, fy=coarse_scale,
-                                 interpolation=cv2.INTER_AREA)
-        self.ncc = ReferenceNCC(self.coarse)
-        self.attitude_scale = float(attitude_scale)
-        self.small = cv2.resize(self.gray, None, fx=attitude_scale, fy=attitude_scale,
-                                interpolation=cv2.INTER_AREA)
-        self.small_ncc = ReferenceNCC(self.small)
-        self.hist = channel_histograms(image)[:, 0]
-
-
 class MRSMCC:
     """The MRSM-CC localiser against one reference image (estimator API).
 
@@ -165,8 +150,8 @@ class MRSMCC:
         if self.landmarks is None:
             cfg = {"region_size": int(self.config["region_size"]), **self.config["landmarks"]}
             self.landmarks = LandmarkModel(cfg).fit([ref])
-        self.reference_ = _Reference(ref, float(self.config["coarse_scale"]),
-                                     float(self.config["attitude_scale"]))
+        self.reference_ = ReferenceImage(ref, float(self.config["coarse_scale"]),
+                                         float(self.config["attitude_scale"]))
         return self
 
     # ------------------------------------------------------------------ steps
@@ -209,9 +194,11 @@ class MRSMCC:
 
     def register(self, gray: np.ndarray, centres: np.ndarray, transform=None, prior=None,
                  radius: int | None = None):
-        """Step 4: register each region; returns src (sensed centres), dst (reference), NCC.
+        """Step 4: register each region.
 
-        Regions that cannot be registered (window off the reference) get NaN.
+        Returns src (sensed centres), dst (reference), NCC score and the region index of each
+        registration: without a transform each region contributes its ``global_peaks`` best
+        peaks; with one, one registration per region (NaN where the window leaves the reference).
         """
         cfg = self.config
         s = int(cfg["region_size"])
@@ -223,19 +210,26 @@ class MRSMCC:
         score = np.full(n, -np.inf)
         if transform is None:
             tl, temps, k = self._templates_global(gray, centres)
-            src = tl + half
             ncc, off = R.ncc, np.zeros(2)
             if prior is not None:
-                ncc, off = self._prior_ncc(prior, temps.shape[1:])
-            coarse = ncc.best(temps)
+                ncc, off = R.prior_ncc(prior, temps.shape[1:])
+            top = int(cfg["global_peaks"])
+            coarse = ncc.best(temps, top=top, separation=s // (2 * k)).reshape(n, top, 3)
             rr = int(cfg["refine_radius_px"])
+            src, dst, score, group = [], [], [], []
             for i in range(n):
-                guess = (coarse[i, :2] + off) * k
                 y, x = tl[i, 1], tl[i, 0]
-                rx, ry, sc_ = local_match(R.gray, gray[y:y + s, x:x + s], guess, rr)
-                dst[i] = (rx + half, ry + half)
-                score[i] = sc_
-            return src, dst, score
+                for j in range(top):
+                    if not np.isfinite(coarse[i, j, 2]):
+                        continue
+                    rx, ry, sc_ = local_match(R.gray, gray[y:y + s, x:x + s],
+                                              (coarse[i, j, :2] + off) * k, rr)
+                    src.append(tl[i] + half)
+                    dst.append((rx + half, ry + half))
+                    score.append(sc_)
+                    group.append(i)
+            return (np.array(src).reshape(-1, 2), np.array(dst).reshape(-1, 2), np.array(score),
+                    np.array(group, int))
         T = np.asarray(transform, float)
         Linv = np.linalg.inv(T[:, :2])
         H, W = gray.shape
@@ -253,19 +247,7 @@ class MRSMCC:
             src[i] = p
             dst[i] = (rx + half, ry + half)
             score[i] = sc_
-        return src, dst, score
-
-    def _prior_ncc(self, prior, tshape):
-        """A ReferenceNCC on the coarse window around a rough prior, and its offset."""
-        R = self.reference_
-        (px, py), r = prior
-        f = R.coarse_scale
-        H, W = R.coarse.shape
-        x0 = int(np.clip((px - r) * f - tshape[1], 0, W - tshape[1]))
-        y0 = int(np.clip((py - r) * f - tshape[0], 0, H - tshape[0]))
-        x1 = int(np.clip((px + r) * f + tshape[1], x0 + tshape[1], W))
-        y1 = int(np.clip((py + r) * f + tshape[0], y0 + tshape[0], H))
-        return ReferenceNCC(R.coarse[y0:y1, x0:x1]), np.array([x0, y0], float)
+        return src, dst, score, np.arange(n)
 
     def attitude(self, gray: np.ndarray):
         """Step 1 without an NEC prior: a coarse similarity prior from whole-image NCC.
@@ -273,7 +255,8 @@ class MRSMCC:
         The paper pre-processes the sensed image with the attitude the navigation system supplies.
         With no such prior the central part of the sensed image is rotated and scaled by each
         hypothesis and matched at ``attitude_scale`` resolution over the reference; the best peak
-        gives a sensed -> reference similarity.  Returns (transform, ncc) or (None, ncc).
+        gives a sensed -> reference similarity, refined at full resolution
+        (:meth:`refine_whole`).  Returns (transform, ncc).
         """
         cfg = self.config
         R = self.reference_
@@ -301,29 +284,40 @@ class MRSMCC:
                 hyps.append(Lref)
         best = R.small_ncc.best(np.stack(temps))
         k = int(np.argmax(best[:, 2]))
-        if best[k, 2] < float(cfg["attitude_min_ncc"]):
-            return None, float(best[k, 2])
         centre_small = best[k, :2] + np.array([(tw - 1) / 2, (th - 1) / 2])
         centre_ref = (centre_small + 0.5) / f - 0.5
-        return translation_affine(centre_ref, sensed_centre(gray.shape), hyps[k]), float(best[k, 2])
+        T = translation_affine(centre_ref, sensed_centre(gray.shape), hyps[k])
+        return self.refine_whole(gray, T, int(round(2 / f)))
 
-    def sism(self, gray: np.ndarray, prior=None) -> tuple[np.ndarray, float]:
-        """Whole-image NCC (the paper's SISM): reference position of the image centre, peak NCC."""
-        R = self.reference_
-        f = R.coarse_scale
-        k = int(round(1 / f))
+    def refine_whole(self, gray: np.ndarray, transform, radius: int):
+        """Refine a transform's translation by full-resolution NCC of the central 70 % of the
+        image, resampled into the reference's orientation and scale.  Returns (transform, ncc)."""
+        T = np.asarray(transform, float)
         h, w = gray.shape
-        hs, ws = h // k, w // k
-        small = cv2.resize(gray[:hs * k, :ws * k], (ws, hs), interpolation=cv2.INTER_AREA)
-        ncc, off = R.ncc, np.zeros(2)
-        if prior is not None:
-            ncc, off = self._prior_ncc(prior, small.shape)
-        if small.shape[0] > ncc.shape[0] or small.shape[1] > ncc.shape[1]:
-            return np.full(2, np.nan), -np.inf
-        coarse = ncc.best(small)[0]
-        x, y, sc = local_match(R.gray, gray, (coarse[:2] + off) * k,
-                               int(self.config["refine_radius_px"]))
-        return np.array([x, y]) + sensed_centre(gray.shape), sc
+        tw, th = int(w * 0.7), int(h * 0.7)
+        Linv = np.linalg.inv(T[:, :2])
+        uc = np.array([(tw - 1) / 2, (th - 1) / 2])
+        c = sensed_centre(gray.shape)
+        M = np.hstack([Linv, (c - Linv @ uc)[:, None]])
+        temp = cv2.warpAffine(gray, M, (tw, th), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_REFLECT)
+        x, y, sc = local_match(self.reference_.gray, temp, affmod.apply_affine(T, c) - uc, radius)
+        if not np.isfinite(sc):
+            return T, float("-inf")
+        return translation_affine(np.array([x, y]) + uc, c, T[:, :2]), sc
+
+    def _whole_image(self, gray, T, T_att, att_ncc, rough, n_regions):
+        """Step 4's fallback: match the entire sensed image.  With an attitude estimate it is
+        the pre-processed (rotation/scale compensated) whole image; otherwise plain SISM."""
+        empty = np.zeros((0, 2))
+        if T is not None:
+            Tn, sc = self.refine_whole(gray, T, int(self.config["search_radius_px"]))
+            return "whole-image", float("nan"), sc, empty, empty, n_regions, Tn
+        if T_att is not None:
+            return "whole-image", float("nan"), att_ncc, empty, empty, n_regions, T_att
+        centre, sc = self.reference_.sism(gray, rough, int(self.config["refine_radius_px"]))
+        c = sensed_centre(gray.shape)
+        return "sism", float("nan"), sc, empty, empty, n_regions, translation_affine(centre, c)
 
     # ------------------------------------------------------------------ main
     def locate(self, sensed: np.ndarray, prior=None) -> Localisation:
@@ -355,12 +349,12 @@ class MRSMCC:
                 (px, py), r = prior
                 rough = ((float(px), float(py)), float(r))
         radius = int(cfg["search_radius_px"])
-        from_attitude = False
+        from_attitude, T_att, att_ncc = False, None, -np.inf
         if T is None and rough is None:
             first = self.colour_constancy(sensed) if cfg["colour_constancy"] else sensed
-            T, _ = self.attitude(to_gray(first))
-            if T is not None:
-                from_attitude, radius = True, int(cfg["attitude_radius_px"])
+            T_att, att_ncc = self.attitude(to_gray(first))
+            if att_ncc >= float(cfg["attitude_min_ncc"]):
+                T, from_attitude, radius = T_att, True, int(cfg["attitude_radius_px"])
         last = None
         it = 0
         result = None
@@ -371,9 +365,9 @@ class MRSMCC:
             fit = None
             if len(regions) >= int(cfg["min_regions"]):
                 centres = np.array([[r.x, r.y] for r in regions])
-                src, dst, score = self.register(gray, centres, T, rough, radius)
+                src, dst, score, group = self.register(gray, centres, T, rough, radius)
                 good = np.isfinite(dst).all(axis=1) & (score >= float(cfg["min_ncc"]))
-                fit = affmod.best_consistent_triple(src[good], dst[good], cfg["affine"])
+                fit = affmod.best_consistent_triple(src[good], dst[good], cfg["affine"], group[good])
                 if fit is not None and fit.min_error > float(cfg["consistency_px"]):
                     fit = None
             radius = int(cfg["search_radius_px"])
@@ -384,10 +378,9 @@ class MRSMCC:
                     continue
                 if T is not None and last is not None:
                     break                         # keep the previous iteration's estimate
-                centre, sc = self.sism(gray, rough if T is None else (tuple(affmod.apply_affine(T, c)),
-                                                                     float(cfg["search_radius_px"])))
-                T = translation_affine(centre, c, None if T is None else T[:, :2])
-                result = ("sism", float("nan"), sc, np.zeros((0, 2)), np.zeros((0, 2)), len(regions))
+                result = self._whole_image(gray, T, T_att, att_ncc, rough, len(regions))
+                T = result[-1]
+                result = result[:-1]
                 break
             T = fit.transform
             inl = int(np.sum(fit.errors <= float(cfg["consistency_px"])))
@@ -397,9 +390,7 @@ class MRSMCC:
                 break
             last = P
         if result is None:                        # every iteration was spent without a fit
-            centre, sc = self.sism(to_gray(sensed), rough)
-            T = translation_affine(centre, c)
-            result = ("sism", float("nan"), sc, np.zeros((0, 2)), np.zeros((0, 2)), 0)
+            *result, T = self._whole_image(to_gray(sensed), None, T_att, att_ncc, rough, 0)
         method, emin, score, s_, d_, nreg = result
         scale, rot = affmod.scale_rotation(T) if np.all(np.isfinite(T)) else (np.nan, np.nan)
         return Localisation(affmod.apply_affine(T, c), T, scale, rot, it, nreg, method, emin,

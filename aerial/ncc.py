@@ -64,7 +64,7 @@ class ReferenceNCC:
         self._den: dict = {}
 
     def _window_norm(self, th: int, tw: int) -> np.ndarray:
-        """sqrt(sum (I - mean)^2) of every th x tw window (valid positions); 0 where too flat."""
+        """1 / sqrt(sum (I - mean)^2) of every th x tw window (valid positions); 0 where too flat."""
         key = (th, tw)
         if key not in self._den:
             s, sq = self._ii
@@ -74,9 +74,10 @@ class ReferenceNCC:
                     - ii[th:H + 1, :W - tw + 1] + ii[:H - th + 1, :W - tw + 1]
             n = th * tw
             var = np.maximum(box(sq) - box(s) ** 2 / n, 0.0)
-            den = np.sqrt(var)
-            den[var < n * self.min_std ** 2] = 0.0
-            self._den[key] = den.astype(np.float32)
+            flat = var < n * self.min_std ** 2
+            inv = 1.0 / np.sqrt(np.where(flat, 1.0, var))
+            inv[flat] = 0.0
+            self._den[key] = inv.astype(np.float32)
         return self._den[key]
 
     def search(self, templates: np.ndarray) -> np.ndarray:
@@ -103,23 +104,37 @@ class ReferenceNCC:
         tn = np.sqrt((t0.astype(np.float64) ** 2).sum(axis=(1, 2))).astype(np.float32)
         ft = sfft.rfft2(t0, s=self.fshape, axes=(1, 2), workers=1)
         corr = sfft.irfft2(self._spec[None] * np.conj(ft), s=self.fshape, axes=(1, 2), workers=1)
-        corr = corr[:, :H - th + 1, :W - tw + 1]
-        den = self._window_norm(th, tw)[None] * np.maximum(tn, 1e-6)[:, None, None]
-        out = np.where(den > 0, corr / np.where(den > 0, den, 1.0), 0.0).astype(np.float32)
-        out[tn < np.sqrt(th * tw) * self.min_std] = 0.0
+        out = corr[:, :H - th + 1, :W - tw + 1]
+        out *= self._window_norm(th, tw)[None]
+        scale = np.where(tn < np.sqrt(th * tw) * self.min_std, 0.0, 1.0 / np.maximum(tn, 1e-6))
+        out *= scale.astype(np.float32)[:, None, None]
         return out[0] if single else out
 
-    def best(self, templates: np.ndarray) -> np.ndarray:
-        """Sub-pixel top-left (x, y) and score of each template's NCC maximum: (K, 3)."""
+    def best(self, templates: np.ndarray, top: int = 1, separation: int = 4) -> np.ndarray:
+        """Sub-pixel top-left (x, y) and score of each template's NCC maxima.
+
+        Returns (K, 3) for ``top == 1``, else (K, top, 3): the ``top`` highest peaks, each at least
+        ``separation`` px from the higher ones (score -inf where there are fewer); without the
+        leading K for a single 2-D template.
+        """
+        single = np.asarray(templates).ndim == 2
         maps = self.search(templates)
-        if maps.ndim == 2:
+        if single:
             maps = maps[None]
-        out = np.zeros((len(maps), 3))
+        out = np.full((len(maps), top, 3), -np.inf)
         for k, m in enumerate(maps):
-            r, c = np.unravel_index(int(np.argmax(m)), m.shape)
-            dy, dx = subpixel_peak(m, r, c)
-            out[k] = (c + dx, r + dy, m[r, c])
-        return out
+            work = m if top == 1 else m.copy()
+            for j in range(top):
+                r, c = np.unravel_index(int(np.argmax(work)), work.shape)
+                if not np.isfinite(work[r, c]):
+                    break
+                dy, dx = subpixel_peak(m, r, c)
+                out[k, j] = (c + dx, r + dy, m[r, c])
+                if top > 1:
+                    work[max(0, r - separation):r + separation + 1,
+                         max(0, c - separation):c + separation + 1] = -np.inf
+        out = out[:, 0] if top == 1 else out
+        return out[0] if single else out
 
 
 def local_match(reference: np.ndarray, template: np.ndarray, top_left_xy, radius: int):

@@ -8,14 +8,14 @@ exact sensed -> tile affine is known, so is the truth of the centre.
 Photometric change (:data:`PHOTOMETRIC`; every trial gets all of them, each with a random strength
 drawn uniformly from its range; a range that includes the identity can leave one out):
 
-* colour cast -- per-channel gain ``U[0.7, 1.3]`` and offset ``U[-25, 25]`` gray levels;
-* gamma ``U[0.5, 2.0]``;
-* contrast -- about the image mean, factor ``U[0.6, 1.4]``;
-* haze -- ``I t + A (1 - t)`` with transmission ``t ~ U[0.55, 1.0]`` and a bluish-white airlight
+* colour cast -- per-channel gain ``U[0.75, 1.25]`` and offset ``U[-20, 20]`` gray levels;
+* gamma ``U[0.6, 1.7]``;
+* contrast -- about the image mean, factor ``U[0.7, 1.3]``;
+* haze -- ``I t + A (1 - t)`` with transmission ``t ~ U[0.65, 1.0]`` and a bluish-white airlight
   ``A ~ U[170, 240]`` (blue +10);
 * shadow pattern -- smooth random blobs (a Gaussian-blurred random field, sigma 25-60 px, over about
-  a third of the image) darkened by a factor ``1 - depth``, ``depth ~ U[0.0, 0.6]``;
-* sensor noise -- Gaussian, sigma ``U[0, 6]`` gray levels.
+  a third of the image, soft-edged) darkened by a factor ``1 - depth``, ``depth ~ U[0.0, 0.4]``;
+* sensor noise -- Gaussian, sigma ``U[0, 4]`` gray levels.
 
 Trial k of seed S draws from ``numpy.random.default_rng([S, k])``, so a trial does not depend on
 how many came before it or which methods run.
@@ -36,16 +36,16 @@ GEOMETRY = {"size": (400, 300), "scale": (0.9, 1.1), "rotation_deg": (-10.0, 10.
 
 #: Ranges of the photometric change (see module docstring).
 PHOTOMETRIC = {
-    "gain": (0.7, 1.3),
-    "offset": (-25.0, 25.0),
-    "gamma": (0.5, 2.0),
-    "contrast": (0.6, 1.4),
-    "haze_transmission": (0.55, 1.0),
+    "gain": (0.75, 1.25),
+    "offset": (-20.0, 20.0),
+    "gamma": (0.6, 1.7),
+    "contrast": (0.7, 1.3),
+    "haze_transmission": (0.65, 1.0),
     "haze_airlight": (170.0, 240.0),
-    "shadow_depth": (0.0, 0.6),
+    "shadow_depth": (0.0, 0.4),
     "shadow_sigma_px": (25.0, 60.0),
     "shadow_cover": 0.35,
-    "noise_sigma": (0.0, 6.0),
+    "noise_sigma": (0.0, 4.0),
 }
 
 
@@ -137,7 +137,7 @@ def photometric_change(image: np.ndarray, rng: np.random.Generator,
                               p["shadow_sigma"])
     field_ /= max(float(field_.std()), 1e-6)
     cut = float(np.quantile(field_, 1 - r["shadow_cover"]))
-    shade = np.clip((field_ - cut) * 2.0, 0, 1)                       # soft-edged blobs
+    shade = np.clip(field_ - cut, 0, 1)                               # soft-edged blobs
     img = img * (1 - p["shadow_depth"] * shade)[:, :, None]
     img = img + rng.normal(0, p["noise"], img.shape).astype(np.float32)
     out = np.clip(np.rint(img), 0, 255).astype(np.uint8)
@@ -146,8 +146,11 @@ def photometric_change(image: np.ndarray, rng: np.random.Generator,
 
 def make_trial(tile_images, index: int, seed: int, photometric: bool = True,
                size=GEOMETRY["size"], scale_range=GEOMETRY["scale"],
-               rotation_range=GEOMETRY["rotation_deg"]) -> Trial:
-    """Trial ``index`` of seed ``seed`` over the given tile images (BGR uint8 list)."""
+               rotation_range=GEOMETRY["rotation_deg"], ranges: dict | None = None) -> Trial:
+    """Trial ``index`` of seed ``seed`` over the given tile images (BGR uint8 list).
+
+    ``ranges`` overrides entries of :data:`PHOTOMETRIC`.
+    """
     rng = np.random.default_rng([int(seed), int(index)])
     t = int(rng.integers(len(tile_images)))
     tile = tile_images[t]
@@ -161,11 +164,12 @@ def make_trial(tile_images, index: int, seed: int, photometric: bool = True,
     img, A = cut_sensed(tile, centre, scale, rot, size)
     params = {}
     if photometric:
-        img, params = photometric_change(img, rng)
+        img, params = photometric_change(img, rng, ranges)
     return Trial(int(index), t, img, A, centre, scale, rot, params)
 
 
-def make_trials(tile_images, n: int, seed: int, photometric: bool = True):
+def make_trials(tile_images, n: int, seed: int, photometric: bool = True,
+                ranges: dict | None = None):
     """Trials 0..n-1 of ``seed`` (a generator: each trial's image is made when it is needed)."""
     for k in range(int(n)):
-        yield make_trial(tile_images, k, seed, photometric)
+        yield make_trial(tile_images, k, seed, photometric, ranges=ranges)
