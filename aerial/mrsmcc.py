@@ -92,7 +92,9 @@ class Localisation:
     n_regions : int
         Landmark regions registered in the last iteration.
     method : str
-        ``"multi-region"`` or ``"sism"`` (the Step-4 fallback).
+        ``"multi-region"``; or the Step-4 fallback: ``"whole-image"`` (the whole sensed image,
+        rotation/scale compensated by the attitude search) or ``"sism"`` (plain whole-image NCC,
+        when there is no attitude estimate).
     min_error : float
         The chosen triple's minimum relative estimation error (px; NaN for SISM).
     score : float
@@ -100,6 +102,9 @@ class Localisation:
         transform, or the SISM peak NCC.
     src, dst : ndarray (N, 2)
         Registered region centres (sensed, reference) of the last iteration.
+    ncc : float
+        NCC of the whole sensed image (central 70 %, gray) with the reference under the final
+        transform -- comparable between references, so it picks the tile when several are tried.
     seconds : float
     """
 
@@ -114,6 +119,7 @@ class Localisation:
     score: float = float("nan")
     src: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     dst: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    ncc: float = float("nan")
     seconds: float = 0.0
 
 
@@ -392,6 +398,10 @@ class MRSMCC:
         if result is None:                        # every iteration was spent without a fit
             *result, T = self._whole_image(to_gray(sensed), None, T_att, att_ncc, rough, 0)
         method, emin, score, s_, d_, nreg = result
-        scale, rot = affmod.scale_rotation(T) if np.all(np.isfinite(T)) else (np.nan, np.nan)
+        if not np.all(np.isfinite(T)):
+            return Localisation(np.full(2, np.nan), T, np.nan, np.nan, it, nreg, method, emin, score,
+                                s_, d_, -np.inf, time.perf_counter() - t0)
+        scale, rot = affmod.scale_rotation(T)
+        _, ncc = self.refine_whole(to_gray(sensed), T, 0)
         return Localisation(affmod.apply_affine(T, c), T, scale, rot, it, nreg, method, emin,
-                            score, s_, d_, time.perf_counter() - t0)
+                            score, s_, d_, ncc, time.perf_counter() - t0)

@@ -22,14 +22,17 @@ how many came before it or which methods run.
 """
 from __future__ import annotations
 
+import csv
+import io
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
 
 __all__ = ["PHOTOMETRIC", "GEOMETRY", "Trial", "make_trial", "make_trials", "photometric_change",
-           "sensed_centre", "cut_sensed"]
+           "sensed_centre", "cut_sensed", "write_sequence"]
 
 #: Geometry of a sensed image (the seed's protocol).
 GEOMETRY = {"size": (400, 300), "scale": (0.9, 1.1), "rotation_deg": (-10.0, 10.0)}
@@ -173,3 +176,75 @@ def make_trials(tile_images, n: int, seed: int, photometric: bool = True,
     """Trials 0..n-1 of ``seed`` (a generator: each trial's image is made when it is needed)."""
     for k in range(int(n)):
         yield make_trial(tile_images, k, seed, photometric, ranges=ranges)
+
+
+def write_sequence(tiles, out_dir, n: int = 20, seed: int = 0, step_m: float = 8.0,
+                   photometric: bool = True) -> list[dict]:
+    """Write a synthetic UAV sequence: ``n`` sensed images along a straight flight line, and
+    ``truth.csv`` (image, lat, lon, tile, x, y, scale, rotation_deg).
+
+    The line starts at a random point and heading; consecutive images are ``step_m`` apart.  Each
+    image is cut, as in the Monte-Carlo protocol, from the tile that holds its whole footprint; a
+    point whose footprint fits no single tile ends the line, and a new one starts elsewhere.
+
+    Parameters
+    ----------
+    tiles : aerial.geo.TileSet
+    out_dir : path
+    n : int
+    seed : int
+    step_m : float
+    photometric : bool
+
+    Returns
+    -------
+    list of dict
+        The rows of ``truth.csv``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng([int(seed), 7])
+    lat = [v for t in tiles for v in (t.top_left[0], t.bottom_right[0])]
+    lon = [v for t in tiles for v in (t.top_left[1], t.bottom_right[1])]
+    lo = tiles.latlon_to_local([min(lat), min(lon)])
+    hi = tiles.latlon_to_local([max(lat), max(lon)])
+    size = GEOMETRY["size"]
+    rows, pos, heading, tries = [], None, 0.0, 0
+    while len(rows) < n:
+        tries += 1
+        if tries > 200 * n:
+            raise ValueError(f"could not place {n} sensed images on the tiles of {tiles.root}")
+        if pos is None:
+            pos = rng.uniform(lo, hi)
+            heading = rng.uniform(0, 2 * np.pi)
+        ll = tiles.local_to_latlon(pos)
+        scale = float(rng.uniform(*GEOMETRY["scale"]))
+        rot = float(rng.uniform(*GEOMETRY["rotation_deg"]))
+        mx, my = _footprint_margin(size, scale, rot)
+        placed = False
+        for ti, t in enumerate(tiles):
+            if not bool(t.contains(ll)):
+                continue
+            img = t.image()
+            x, y = t.latlon_to_pixel(ll)
+            if mx + 1 <= x <= img.shape[1] - 2 - mx and my + 1 <= y <= img.shape[0] - 2 - my:
+                sensed, _ = cut_sensed(img, (x, y), scale, rot, size)
+                if photometric:
+                    sensed, _ = photometric_change(sensed, rng)
+                name = f"{len(rows):04d}.png"
+                cv2.imwrite(str(out / name), sensed)
+                rows.append({"image": name, "lat": float(ll[0]), "lon": float(ll[1]),
+                             "tile": t.name, "x": float(x), "y": float(y), "scale": scale,
+                             "rotation_deg": rot})
+                placed = True
+                break
+        # Next point along the line; a point off every tile's interior restarts the line.
+        pos = pos + step_m * np.array([np.cos(heading), np.sin(heading)]) if placed else None
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    w.writeheader()
+    w.writerows(rows)
+    tmp = out / ".truth.csv.tmp"
+    tmp.write_text(buf.getvalue())
+    tmp.replace(out / "truth.csv")
+    return rows
