@@ -50,7 +50,7 @@ default_config = {
     "regions_per_type": 8,         # at most this many regions per type (the paper shows 3-10)
     "region_spacing": 40,          # same-type regions: centres at least this far apart (px)
     "merge_distance": 32,          # regions of different types closer than this are combined
-    "min_region_std": 16.0,        # gray-level standard deviation a region needs (NCC)
+    "min_region_std": 12.0,        # gray-level standard deviation a region needs (NCC)
     "stride": 8,                   # candidate region centres are on this grid (px)
 }
 
