@@ -58,7 +58,7 @@ default_config = {
     "search_radius_px": 12,         # later iterations: search around the predicted position
     "prior_radius_px": 200.0,       # rough prior centre: global search within this radius
     "attitude_scale": 0.25,         # resolution of the attitude search (Step 1 without an NEC prior)
-    "attitude_rotations_deg": (-10.0, -7.5, -5.0, -2.5, 0.0, 2.5, 5.0, 7.5, 10.0),
+    "attitude_rotations_deg": (-10.0, -7.5, -5.0, -2.5, 0.0, 2.5, 5.0, 7.5, 10.0),  # hypotheses
     "attitude_scales": (0.9, 1.0, 1.1),                          # scale hypotheses
     "attitude_min_ncc": 0.3,        # below this the attitude search gives no prior
     "attitude_radius_px": 32,       # first-iteration search radius around the attitude prior
