@@ -261,10 +261,7 @@ def make_method(name: str, store: MapStore, camera: Camera, T_vehicle_camera, co
     if name not in _METHODS and name in _LAZY:
         import importlib
 
-        try:
-            importlib.import_module(_LAZY[name])
-        except ImportError as exc:
-            raise ValueError(f"method {name!r} needs module {_LAZY[name]}, which could not be imported: {exc}") from None
+        importlib.import_module(_LAZY[name])
     if name not in _METHODS:
         raise ValueError(f"unknown method {name!r}; available: {available_methods()}")
     return _METHODS[name](store, camera, T_vehicle_camera, config)

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from mapping.store import (
-    FORMAT_VERSION, MapStore, MapWriter, PlaceData, PlaceMeta, decode_keyframe, encode_keyframe, main,
+    FORMAT_VERSION, MapStore, MapWriter, PlaceData, PlaceMeta, decode_keyframe, encode_keyframe,
 )
+from scenesig.cli import main
 from surveys.errors import DataError
 from surveys.geometry import Camera, CAMERA_FROM_VEHICLE_AXES, make_pose, rot_z
 
@@ -171,6 +172,7 @@ KILL_SCRIPT = textwrap.dedent("""
     import os, signal, sys
     sys.path.insert(0, {tests!r})
     import mapping.store as S
+    import surveys.io as IO  # the atomic writer the store uses
     from test_store import CAM, T_VC, PARAMS, make_place
     mode = {mode!r}
     def die():
@@ -194,14 +196,14 @@ KILL_SCRIPT = textwrap.dedent("""
         def fake_open(p, mode="r", *a, **k):
             f = real_open(p, mode, *a, **k)
             return Half(f) if "place_0002" in str(p) and "w" in mode else f
-        S.open = fake_open
+        IO.open = fake_open
     elif mode == "after_rename":     # killed after the rename, before the journal line
-        real = S._fsync_dir
+        real = IO._fsync_dir
         def fsync_dir(folder):
             if (folder / "place_0002.npz").exists():
                 die()
             real(folder)
-        S._fsync_dir = fsync_dir
+        IO._fsync_dir = fsync_dir
     w = S.MapWriter(sys.argv[1], CAM, T_VC, PARAMS)
     for i in range(5):
         w.write_place(i, make_place(i))
@@ -273,7 +275,7 @@ def test_checksum_mismatch_names_the_file(tmp_path):
         store.load_place(2)
     with pytest.raises(DataError, match=r"place_0002\.npz"):
         MapStore.open(root, verify=True)
-    assert main([str(root)]) == 1
+    assert main(["map", "verify", str(root)]) == 2  # the CLI's one DataError exit status
 
 
 def test_corrupt_place_file_gives_clear_error(tmp_path):
@@ -332,7 +334,7 @@ def test_places_load_lazily_through_an_lru_cache(tmp_path):
         a.landmarks[0, 0] = 1.0  # shared through the cache: read-only
     with pytest.raises(KeyError):
         store.load_place(99)
-    assert main([str(root)]) == 0
+    assert main(["map", "verify", str(root)]) == 0
 
 
 def test_nearest_place_uses_position_and_heading(tmp_path):

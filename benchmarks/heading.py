@@ -26,14 +26,13 @@ Output: a JSON file ``{"dataset", "pairs", "tolerance_px", "methods": {NAME: {"e
 ``heading_<dataset>.png`` (one row per place: map image with the signature boxes, live image with
 where they fired; ORB's voting inliers when the signatures method is not run).
 
-Run ``python -m signatures.heading_bench --help`` (same arguments as the CLI subcommand).
+Run ``scenesig bench heading --help``.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import logging
-import os
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -42,8 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
+from scenesig.commands._types import positive_int
 from signatures import pointfeatures as pf
 from surveys.errors import DataError
+from surveys.io import atomic_path, atomic_write_text
 from surveys.grief import GriefDataset, GriefPair, load
 
 __all__ = ["default_config", "BASELINE_PRESETS", "METHODS", "MethodResult", "run_benchmark",
@@ -216,19 +217,6 @@ def run_point_features(dataset: GriefDataset, pairs: list[GriefPair], kind: str 
 # ---------------------------------------------------------------------------------- signatures
 
 
-def _signatures_module():
-    """Import the signatures method, or raise a RuntimeError saying what is missing."""
-    try:
-        from signatures import heading
-    except ImportError as exc:  # pragma: no cover - depends on the other stage being present
-        raise RuntimeError(f"method 'signatures' is not available: signatures.heading cannot be "
-                           f"imported ({exc}); run with --methods orb,sift") from exc
-    if not (hasattr(heading, "SignatureHeading") or hasattr(heading, "estimate_heading_signatures")):
-        raise RuntimeError("method 'signatures' is not available: signatures.heading has neither "
-                           "SignatureHeading nor estimate_heading_signatures")
-    return heading
-
-
 def _training_description(dataset: GriefDataset, cfg: dict) -> str:
     if dataset.kind == "sessions":
         return ("leave-one-session-out: for live session j, one bank per place mined from the "
@@ -244,27 +232,23 @@ def _training_description(dataset: GriefDataset, cfg: dict) -> str:
 def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 1,
                    progress: bool = True, config: dict | None = None) -> MethodResult:
     """Estimate every pair with the scene-signature method (:mod:`signatures.heading`)."""
-    heading = _signatures_module()
+    from signatures.heading import SignatureHeading
+
     t0 = time.perf_counter()
     detail, extra = {}, {}
-    if hasattr(heading, "SignatureHeading"):
-        est = heading.SignatureHeading(dataset, config, n_jobs=n_jobs, progress=progress)
-        estimates = np.asarray(est.estimate(list(pairs)), float)
-        for p in pairs:
-            rec = est.records.get(tuple(int(v) for v in p))
-            if rec is not None:
-                detail[p] = rec
-        stats = getattr(est, "bank_stats", [])
-        if stats:
-            sizes = [s.get("bank_size", 0) for s in stats]
-            extra["banks"] = len(stats)
-            extra["mean_bank_size"] = float(np.mean(sizes))
-            extra["mean_mining_seconds"] = float(np.mean([s.get("seconds", 0.0) for s in stats]))
-        cfg = est.config
-    else:
-        estimates = np.asarray(heading.estimate_heading_signatures(
-            dataset, list(pairs), progress=progress, config=config, n_jobs=n_jobs), float)
-        cfg = dict(getattr(heading, "default_config", {}), **(config or {}))
+    est = SignatureHeading(dataset, config, n_jobs=n_jobs, progress=progress)
+    estimates = np.asarray(est.estimate(list(pairs)), float)
+    for p in pairs:
+        rec = est.records.get(tuple(int(v) for v in p))
+        if rec is not None:
+            detail[p] = rec
+    stats = getattr(est, "bank_stats", [])
+    if stats:
+        sizes = [s.get("bank_size", 0) for s in stats]
+        extra["banks"] = len(stats)
+        extra["mean_bank_size"] = float(np.mean(sizes))
+        extra["mean_mining_seconds"] = float(np.mean([s.get("seconds", 0.0) for s in stats]))
+    cfg = est.config
     extra["training"] = _training_description(dataset, cfg)
     extra["jobs"] = n_jobs
     return MethodResult("signatures", estimates, time.perf_counter() - t0, extra, detail)
@@ -365,7 +349,8 @@ def make_figure(dataset: GriefDataset, results: dict[str, MethodResult], path: P
                  f"green = agrees with the estimate, orange = outvoted", fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=80)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80)
     plt.close(fig)
     return source or ""
 
@@ -415,8 +400,6 @@ def run_benchmark(dataset_path, methods=("signatures", "orb", "sift"), json_path
     if len(set(methods)) != len(methods):
         raise ValueError(f"method listed twice in {','.join(methods)}")
     dataset = load(dataset_path)
-    if "signatures" in methods:
-        _signatures_module()  # fail before spending minutes on the other methods
     pairs = list(dataset.pairs())
     if max_pairs is not None:
         pairs = pairs[:max_pairs]
@@ -452,9 +435,7 @@ def run_benchmark(dataset_path, methods=("signatures", "orb", "sift"), json_path
     if json_path is not None:
         json_path = Path(json_path)
         json_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = json_path.with_name(json_path.name + ".tmp")
-        tmp.write_text(json.dumps(doc, indent=1))
-        os.replace(tmp, json_path)
+        atomic_write_text(json_path, json.dumps(doc, indent=1))
     if figure_dir is None and json_path is not None:
         figure_dir = json_path.parent
     if figure_dir is not None and fig_pairs:
@@ -490,33 +471,31 @@ def run_from_args(args) -> int:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The subcommand's arguments (shared by the CLI and ``python -m``)."""
+    """The subcommand's arguments ."""
     p.add_argument("dataset", help="a GRIEF-layout folder (images/ + ground_truth/, or "
                                    "season_00/ + season_01/)")
     p.add_argument("--methods", default="signatures,orb,sift",
                    help=f"comma-separated, from {', '.join(METHODS)}")
     p.add_argument("--json", required=True, help="output JSON file")
     p.add_argument("--figure", default=None, help="figure folder (default: beside the JSON)")
-    p.add_argument("--jobs", type=int, default=2, help="threads (point features) / processes "
+    p.add_argument("--jobs", type=positive_int, default=2, help="threads (point features) / processes "
                                                        "(signature banks)")
     p.add_argument("--baseline-preset", choices=sorted(BASELINE_PRESETS), default="grief",
                    help="point-feature variant: grief (sliding 20-px bin, mean; default) or "
                         "plain (fixed bins, bin centre, SIFT duplicates kept)")
-    p.add_argument("--max-pairs", type=int, default=None, help="only the first N pairs (quick look)")
+    p.add_argument("--max-pairs", type=positive_int, default=None, help="only the first N pairs (quick look)")
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m signatures.heading_bench",
-                                description=__doc__.split("\n")[0])
+    """``scenesig bench heading ARGS``; a :class:`~surveys.errors.DataError` is left to the CLI's handler."""
+    p = argparse.ArgumentParser(prog="scenesig bench heading", description=__doc__.split("\n")[0])
     add_arguments(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    try:
-        return run_from_args(args)
-    except DataError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return run_from_args(args)
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from scenesig.cli import main as _cli
+
+    raise SystemExit(_cli(["bench", "heading", *sys.argv[1:]]))
