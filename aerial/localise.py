@@ -16,7 +16,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 import time
 from pathlib import Path
 
@@ -27,6 +26,7 @@ from aerial.geo import load_tiles
 from aerial.landmarks import LandmarkModel
 from aerial.mrsmcc import MRSMCC
 from surveys.errors import DataError
+from surveys.io import atomic_path, atomic_write_text
 
 __all__ = ["localise_sequence", "IMAGE_SUFFIXES", "COLUMNS"]
 
@@ -34,12 +34,6 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 
 COLUMNS = ("image", "tile", "x_px", "y_px", "lat", "lon", "east_m", "north_m", "scale",
            "rotation_deg", "method", "ncc", "seconds")
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
 
 
 def _read_truth(path: Path) -> dict:
@@ -144,7 +138,7 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
     for r in rows:
         w.writerow({k: (f"{v:.8f}" if k in ("lat", "lon") else
                         f"{v:.3f}" if isinstance(v, float) else v) for k, v in r.items()})
-    _atomic_write(out / "track.csv", buf.getvalue().encode())
+    atomic_write_text(out / "track.csv", buf.getvalue())
     _plot_track(tiles, rows, truth, out / "track.png")
     located = [r for r in rows if np.isfinite(r["lat"])]
     summary = {"images": len(rows), "localised": len(located),
@@ -153,7 +147,7 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
         err = np.array([r["error_m"] for r in rows], float)
         summary["median_error_m"] = float(np.nanmedian(err)) if np.isfinite(err).any() else None
         summary["within_10m"] = float(np.mean(np.nan_to_num(err, nan=np.inf) <= 10.0))
-    _atomic_write(out / "summary.json", (json.dumps(summary, indent=1) + "\n").encode())
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1) + "\n")
     return summary
 
 
@@ -186,7 +180,6 @@ def _plot_track(tiles, rows, truth, path: Path) -> None:
     ax.set_title(f"UAV track: {int(ok.sum())} of {len(rows)} images located")
     ax.legend(loc="upper right", fontsize=8)
     ax.ticklabel_format(useOffset=False)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
     plt.close(fig)
-    os.replace(tmp, path)

@@ -40,8 +40,8 @@ from aerial.landmarks import LandmarkModel
 from aerial.ncc import local_match, to_gray
 from aerial.sism import ReferenceImage
 from aerial.trials import sensed_centre
-from signatures.colour import (channel_histograms, exact_histogram_match,
-                               local_exact_histogram_match, match_histograms)
+from signatures.colour import (exact_histogram_match, local_exact_histogram_match,
+                               match_histograms)
 
 __all__ = ["default_config", "MRSMCC", "Localisation", "translation_affine"]
 

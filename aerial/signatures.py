@@ -30,6 +30,7 @@ from aerial.trials import sensed_centre
 from signatures import mining
 from signatures.bank import Bank
 from signatures.heading import augment
+from surveys.io import atomic_path
 
 __all__ = ["default_config", "SignatureMatcher", "SignatureResult"]
 
@@ -110,9 +111,8 @@ class SignatureMatcher:
         self.mining_seconds_ = time.perf_counter() - t0
         if cache is not None:
             cache.parent.mkdir(parents=True, exist_ok=True)
-            tmp = cache.with_name(cache.name + ".tmp.npz")
-            np.savez(tmp, **self.bank_.to_arrays())
-            tmp.replace(cache)
+            with atomic_path(cache) as tmp:
+                np.savez(tmp, **self.bank_.to_arrays())
         return self
 
     def locate(self, sensed: np.ndarray) -> SignatureResult:

@@ -31,6 +31,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from surveys.io import atomic_path, atomic_write_text
+
 __all__ = ["PHOTOMETRIC", "GEOMETRY", "Trial", "make_trial", "make_trials", "photometric_change",
            "sensed_centre", "cut_sensed", "write_sequence"]
 
@@ -232,7 +234,8 @@ def write_sequence(tiles, out_dir, n: int = 20, seed: int = 0, step_m: float = 8
                 if photometric:
                     sensed, _ = photometric_change(sensed, rng)
                 name = f"{len(rows):04d}.png"
-                cv2.imwrite(str(out / name), sensed)
+                with atomic_path(out / name) as tmp:
+                    cv2.imwrite(str(tmp), sensed)
                 rows.append({"image": name, "lat": float(ll[0]), "lon": float(ll[1]),
                              "tile": t.name, "x": float(x), "y": float(y), "scale": scale,
                              "rotation_deg": rot})
@@ -244,7 +247,5 @@ def write_sequence(tiles, out_dir, n: int = 20, seed: int = 0, step_m: float = 8
     w = csv.DictWriter(buf, fieldnames=list(rows[0]))
     w.writeheader()
     w.writerows(rows)
-    tmp = out / ".truth.csv.tmp"
-    tmp.write_text(buf.getvalue())
-    tmp.replace(out / "truth.csv")
+    atomic_write_text(out / "truth.csv", buf.getvalue())
     return rows

@@ -31,22 +31,16 @@ import argparse
 import csv
 import io
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from surveys.io import atomic_path, atomic_write_text
+
 METHODS = ("mrsmcc", "mrsm", "sism", "sift", "orb", "signatures")
 SUCCESS_PX = 25.0
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _setup(method: str, images, landmarks, cache_dir):
@@ -147,12 +141,13 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
     doc["best_method"] = ranked[0]
     if json_path is not None:
         json_path = Path(json_path)
-        _atomic_write(json_path, json.dumps(doc, indent=1) + "\n")
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(json_path, json.dumps(doc, indent=1) + "\n")
         buf = io.StringIO()
         w = csv.DictWriter(buf, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-        _atomic_write(json_path.with_name("trials.csv"), buf.getvalue())
+        atomic_write_text(json_path.with_name("trials.csv"), buf.getvalue())
     if figure_dir is not None:
         plot_errors(errors, Path(figure_dir) / "aerial_errors.png", trials, seed)
     return doc
@@ -179,10 +174,9 @@ def plot_errors(errors: dict, path: Path, trials: int, seed: int) -> None:
     ax.legend(loc="lower right", fontsize=8)
     ax.grid(alpha=0.3)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=120, bbox_inches="tight")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, bbox_inches="tight")
     plt.close(fig)
-    os.replace(tmp, path)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

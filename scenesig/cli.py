@@ -25,6 +25,7 @@ COMMANDS = (
     "report",
     "experiment",
     "bench",
+    "aerial",
 )
 
 #: second-level command groups (``scenesig GROUP ACTION``); a group appears once a command uses it

@@ -258,3 +258,19 @@ def test_localise_sequence_writes_track(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match="no images"):
         localise_sequence(root, tmp_path / "empty", tmp_path / "o2", progress=False)
+
+
+def test_cli_aerial_commands(tmp_path, capsys):
+    from scenesig import cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["aerial", "bench", "--help"])
+    assert exc.value.code == 0
+    assert "scenesig aerial bench" in capsys.readouterr().out
+    assert cli.main(["aerial", "localise", str(tmp_path / "missing"), str(tmp_path),
+                     "--out", str(tmp_path / "o")]) == 2
+    assert "tile folder not found" in capsys.readouterr().err
+    root = _write_tiles(tmp_path / "tiles", n=1)
+    assert cli.main(["aerial", "simulate", str(root), str(tmp_path / "seq"), "--images", "2"]) == 0
+    assert sorted(p.name for p in (tmp_path / "seq").iterdir()) == ["0000.png", "0001.png",
+                                                                   "truth.csv"]

@@ -12,6 +12,7 @@ import importlib
 BENCHMARKS = {
     "heading": ("heading", "GRIEF heading-estimation benchmark (error rate at 20 px)."),
     "speed": ("speed", "Training and detection speed on simulated images."),
+    "aerial": ("aerial", "Monte-Carlo aerial scene matching on satellite tiles (MRSM-CC and baselines)."),
 }
 
 
