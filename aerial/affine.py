@@ -23,7 +23,7 @@ from itertools import combinations
 import numpy as np
 
 __all__ = ["affine_from_triple", "apply_affine", "TripleFit", "best_consistent_triple",
-           "scale_rotation", "default_config"]
+           "scale_rotation", "default_config", "AffineEstimate", "ransac_affine"]
 
 #: Guards on the triples (see module docstring).
 default_config = {
@@ -149,3 +149,49 @@ def best_consistent_triple(src, dst, config: dict | None = None,
     best = int(np.argmin(emin))
     errors = np.where(own[best], 0.0, err[best])
     return TripleFit(T[best], tuple(int(i) for i in tri[best]), float(emin[best]), errors)
+
+
+@dataclass
+class AffineEstimate:
+    """A sensed image placed on the reference by an affine fitted to correspondences.
+
+    Attributes
+    ----------
+    centre : ndarray (2,)
+        The sensed centre on the reference (NaN when there is no estimate).
+    transform : ndarray (2, 3) or None
+    inliers : int
+    candidates : int
+        Correspondences offered to RANSAC (matches, detections).
+    scale, rotation_deg : float
+    seconds : float
+    """
+
+    centre: np.ndarray
+    transform: np.ndarray | None
+    inliers: int
+    candidates: int
+    scale: float = float("nan")
+    rotation_deg: float = float("nan")
+    seconds: float = 0.0
+
+
+def ransac_affine(src, dst, centre, threshold_px: float, min_inliers: int,
+                  iterations: int = 2000) -> AffineEstimate:
+    """``cv2.estimateAffine2D`` (RANSAC, then refinement on the inliers) of sensed -> reference
+    correspondences, and the sensed ``centre`` mapped by it; no estimate below ``min_inliers``."""
+    import cv2
+
+    src = np.asarray(src, np.float32).reshape(-1, 2)
+    dst = np.asarray(dst, np.float32).reshape(-1, 2)
+    nan = np.full(2, np.nan)
+    if len(src) < max(3, int(min_inliers)):
+        return AffineEstimate(nan, None, 0, len(src))
+    T, inl = cv2.estimateAffine2D(src, dst, method=cv2.RANSAC,
+                                  ransacReprojThreshold=float(threshold_px),
+                                  maxIters=int(iterations), confidence=0.999, refineIters=10)
+    n_in = int(inl.sum()) if inl is not None else 0
+    if T is None or n_in < int(min_inliers):
+        return AffineEstimate(nan, None, n_in, len(src))
+    sc, rot = scale_rotation(T)
+    return AffineEstimate(apply_affine(T, centre), T, n_in, len(src), sc, rot)

@@ -11,16 +11,13 @@ reference's features are computed once per tile.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-
-import cv2
 import numpy as np
 
-from aerial.affine import apply_affine, scale_rotation
+from aerial.affine import AffineEstimate, ransac_affine
 from aerial.trials import sensed_centre
 from signatures import pointfeatures as pf
 
-__all__ = ["default_config", "PointMatcher", "PointResult"]
+__all__ = ["default_config", "PointMatcher"]
 
 #: Point-feature settings.
 default_config = {
@@ -32,19 +29,6 @@ default_config = {
     "ransac_iters": 2000,
     "min_inliers": 6,               # fewer: no estimate
 }
-
-
-@dataclass
-class PointResult:
-    """Estimate of one sensed image: centre on the reference (NaN if none), transform, inliers."""
-
-    centre: np.ndarray
-    transform: np.ndarray | None
-    inliers: int
-    matches: int
-    scale: float = float("nan")
-    rotation_deg: float = float("nan")
-    seconds: float = 0.0
 
 
 class PointMatcher:
@@ -64,23 +48,14 @@ class PointMatcher:
         self.reference_ = self._extract(reference, self.config["reference_features"])
         return self
 
-    def locate(self, sensed: np.ndarray) -> PointResult:
+    def locate(self, sensed: np.ndarray) -> AffineEstimate:
+        """Where the sensed image's centre lies on the reference."""
         t0 = time.perf_counter()
         cfg = self.config
         feats = self._extract(sensed, cfg["sensed_features"])
         m = pf.match(feats, self.reference_, filter="ratio", ratio=float(cfg["ratio"]))
-        nan = np.full(2, np.nan)
-        if len(m) < max(3, int(cfg["min_inliers"])):
-            return PointResult(nan, None, 0, len(m), seconds=time.perf_counter() - t0)
-        a = feats.xy[m.query].astype(np.float32)
-        b = self.reference_.xy[m.train].astype(np.float32)
-        T, inl = cv2.estimateAffine2D(a, b, method=cv2.RANSAC,
-                                      ransacReprojThreshold=float(cfg["ransac_px"]),
-                                      maxIters=int(cfg["ransac_iters"]), confidence=0.999,
-                                      refineIters=10)
-        n_in = int(inl.sum()) if inl is not None else 0
-        if T is None or n_in < int(cfg["min_inliers"]):
-            return PointResult(nan, None, n_in, len(m), seconds=time.perf_counter() - t0)
-        sc, rot = scale_rotation(T)
-        return PointResult(apply_affine(T, sensed_centre(sensed.shape)), T, n_in, len(m), sc, rot,
-                           time.perf_counter() - t0)
+        est = ransac_affine(feats.xy[m.query], self.reference_.xy[m.train],
+                            sensed_centre(sensed.shape), float(cfg["ransac_px"]),
+                            int(cfg["min_inliers"]), int(cfg["ransac_iters"]))
+        est.seconds = time.perf_counter() - t0
+        return est

@@ -19,20 +19,19 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from aerial.affine import apply_affine, scale_rotation
+from aerial.affine import AffineEstimate, ransac_affine
 from aerial.trials import sensed_centre
 from signatures import mining
 from signatures.bank import Bank
 from signatures.heading import augment
 from surveys.io import atomic_path
 
-__all__ = ["default_config", "SignatureMatcher", "SignatureResult"]
+__all__ = ["default_config", "SignatureMatcher"]
 
 #: Scene-signature matcher settings.
 default_config = {
@@ -47,19 +46,6 @@ default_config = {
     "min_inliers": 4,
     "seed": 0,
 }
-
-
-@dataclass
-class SignatureResult:
-    """Estimate of one sensed image: centre on the tile (NaN if none), transform, inliers."""
-
-    centre: np.ndarray
-    transform: np.ndarray | None
-    inliers: int
-    detections: int
-    scale: float = float("nan")
-    rotation_deg: float = float("nan")
-    seconds: float = 0.0
 
 
 class SignatureMatcher:
@@ -115,30 +101,22 @@ class SignatureMatcher:
                 np.savez(tmp, **self.bank_.to_arrays())
         return self
 
-    def locate(self, sensed: np.ndarray) -> SignatureResult:
+    def locate(self, sensed: np.ndarray) -> AffineEstimate:
+        """Where the sensed image's centre lies on the tile."""
         t0 = time.perf_counter()
         cfg = self.config
         f = float(cfg["scale"])
-        nan = np.full(2, np.nan)
-        if len(self.bank_) == 0:
-            return SignatureResult(nan, None, 0, 0, seconds=time.perf_counter() - t0)
-        small = cv2.resize(sensed, None, fx=f, fy=f, interpolation=cv2.INTER_AREA)
-        det = self.bank_.detect(small, top_n=1)
-        x, y, p = det.x[:, 0], det.y[:, 0], det.prob[:, 0]
-        use = np.isfinite(x) & np.isfinite(y) & (np.nan_to_num(p) >= float(cfg["min_prob"]))
-        n_det = int(use.sum())
-        if n_det < max(3, int(cfg["min_inliers"])):
-            return SignatureResult(nan, None, 0, n_det, seconds=time.perf_counter() - t0)
-        # Detection centres -> full-resolution pixel coordinates (INTER_AREA by 1/f).
-        a = (np.stack([x[use], y[use]], axis=1) + 0.5) / f - 0.5
-        nom = np.array([c.nominal_xy for c in self.bank_.classifiers])[use]
-        b = (nom + 0.5) / f - 0.5
-        T, inl = cv2.estimateAffine2D(a.astype(np.float32), b.astype(np.float32),
-                                      method=cv2.RANSAC, ransacReprojThreshold=float(cfg["ransac_px"]),
-                                      maxIters=2000, confidence=0.999, refineIters=10)
-        n_in = int(inl.sum()) if inl is not None else 0
-        if T is None or n_in < int(cfg["min_inliers"]):
-            return SignatureResult(nan, None, n_in, n_det, seconds=time.perf_counter() - t0)
-        sc, rot = scale_rotation(T)
-        return SignatureResult(apply_affine(T, sensed_centre(sensed.shape)), T, n_in, n_det, sc,
-                               rot, time.perf_counter() - t0)
+        src = dst = np.zeros((0, 2))
+        if len(self.bank_):
+            small = cv2.resize(sensed, None, fx=f, fy=f, interpolation=cv2.INTER_AREA)
+            det = self.bank_.detect(small, top_n=1)
+            x, y, p = det.x[:, 0], det.y[:, 0], det.prob[:, 0]
+            use = np.isfinite(x) & np.isfinite(y) & (np.nan_to_num(p) >= float(cfg["min_prob"]))
+            # Detection centres and nominal positions -> full-resolution pixels (INTER_AREA by 1/f).
+            src = (np.stack([x[use], y[use]], axis=1) + 0.5) / f - 0.5
+            nom = np.array([c.nominal_xy for c in self.bank_.classifiers])[use]
+            dst = (nom + 0.5) / f - 0.5
+        est = ransac_affine(src, dst, sensed_centre(sensed.shape), float(cfg["ransac_px"]),
+                            int(cfg["min_inliers"]))
+        est.seconds = time.perf_counter() - t0
+        return est
