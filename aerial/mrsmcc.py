@@ -276,8 +276,8 @@ class MRSMCC:
         temps, hyps = [], []
         for rot in cfg["attitude_rotations_deg"]:
             for sc in cfg["attitude_scales"]:
-                # template pixel u -> small-image pixel: cs + (1/sc) R(-rot)... i.e. the template
-                # shows the image resampled into the reference's orientation and scale.
+                # The template is the image resampled into the reference's orientation and scale
+                # under this hypothesis: template pixel u shows small-image pixel cs + Linv (u - uc).
                 th_ = np.radians(rot)
                 Rm = np.array([[np.cos(th_), -np.sin(th_)], [np.sin(th_), np.cos(th_)]])
                 Lref = Rm / sc                       # hypothesis: sensed -> reference linear part
