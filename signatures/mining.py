@@ -40,12 +40,10 @@ The work per shape is vectorised: every candidate window of a shape is unrolled 
 and each SVM fit only adds the rows of the current positives.  Shapes run in parallel with joblib
 (``n_jobs``); the HOG pyramids are computed once per image and shared.
 
-Run ``python -m signatures.mining --help`` to mine a place from a folder of images.
+``scenesig bench mining IMAGE...`` mines a place from a folder of images.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import math
 import time
@@ -753,28 +751,3 @@ def mine_place(images, offsets=None, config: dict | None = None, negatives=None,
         firings={r[0]: r[3]["firings"] for r in results if r[1] == "converged"})
     bank = Bank(classifiers, image_size=size)
     return bank, stats
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description="Mine scene signatures for one place from a folder "
-                                             "of aligned images (offsets assumed zero).")
-    ap.add_argument("images", nargs="+", help="image files of one place")
-    ap.add_argument("--out", help="write the bank arrays to this .npz")
-    ap.add_argument("--n-jobs", type=int, default=1)
-    args = ap.parse_args(argv)
-    from surveys.errors import DataError
-    imgs = []
-    for p in args.images:
-        im = cv2.imread(p, cv2.IMREAD_COLOR)
-        if im is None:
-            raise DataError(p, "cannot read or decode image")
-        imgs.append(im)
-    bank, stats = mine_place(imgs, n_jobs=args.n_jobs, progress=True)
-    if args.out:
-        np.savez_compressed(args.out, **bank.to_arrays())
-    print(json.dumps(stats.as_dict()))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

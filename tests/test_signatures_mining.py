@@ -4,7 +4,7 @@ import pytest
 
 from signatures import mining
 from signatures.shapes import ShapeSet
-from signatures.synthetic import synthetic_place
+from localiser.synthetic import synthetic_place
 
 
 def _shapes(boxes):
