@@ -21,7 +21,7 @@ BENCHMARKS = {
     "pointmap": ("pointmap", "ORB/SIFT point map of one keyframe: time, size, depth error."),
     "mining": ("mining", "Mine one place's scene signatures from images; mining statistics."),
     "realism": ("realism", "ORB matches across simulated conditions (and GRIEF with --real)."),
-    "aerial": ("aerial", "Monte-Carlo aerial scene matching on satellite tiles (MRSM-CC and baselines)."),
+    "aerial": ("aerial", "Monte-Carlo UAV-to-satellite-map matching (MRSM-CC and baselines)."),
 }
 
 
