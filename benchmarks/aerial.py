@@ -150,7 +150,52 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
         atomic_write_text(json_path.with_name("trials.csv"), buf.getvalue())
     if figure_dir is not None:
         plot_errors(errors, Path(figure_dir) / "aerial_errors.png", trials, seed)
+        if "mrsmcc" in methods:
+            tr = make_trial(images, 0, seed)
+            plot_example(ests["mrsmcc"][tr.tile], tr, tiles[tr.tile].name,
+                         Path(figure_dir) / "aerial_example.png")
     return doc
+
+
+def plot_example(est, trial, tile_name: str, path: Path) -> None:
+    """One trial as MRSM-CC sees it: the sensed image, its colour-corrected version with the
+    registered landmark regions, and the tile with the true and estimated footprints."""
+    import cv2
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from aerial.affine import apply_affine
+
+    loc = est.locate(trial.image)
+    cc = est.colour_constancy(trial.image, loc.transform)
+    h, w = trial.image.shape[:2]
+    corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1], [0, 0]], float)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
+    axes[0].imshow(cv2.cvtColor(trial.image, cv2.COLOR_BGR2RGB))
+    axes[0].set_title(f"sensed (scale {trial.scale:.2f}, rotation {trial.rotation_deg:.1f} deg)")
+    axes[1].imshow(cv2.cvtColor(cc, cv2.COLOR_BGR2RGB))
+    half = (est.config["region_size"] - 1) / 2
+    consistent = np.linalg.norm(apply_affine(loc.transform, loc.src) - loc.dst, axis=1) \
+        <= float(est.config["consistency_px"])
+    for x, y in loc.src[consistent]:
+        axes[1].add_patch(plt.Rectangle((x - half, y - half), 2 * half, 2 * half, fill=False,
+                                        ec="r", lw=1))
+    axes[1].set_title(f"local EHM; {int(consistent.sum())} of {len(loc.src)} registrations "
+                      f"consistent ({loc.method})")
+    axes[2].imshow(cv2.cvtColor(est.reference_.image, cv2.COLOR_BGR2RGB))
+    for T, col, lab in ((trial.affine, "w", "truth"), (loc.transform, "r", "MRSM-CC")):
+        p = apply_affine(T, corners)
+        axes[2].plot(p[:, 0], p[:, 1], color=col, lw=1.5, label=lab)
+    axes[2].plot(*loc.dst[consistent].T, "r+", ms=6)
+    err = float(np.linalg.norm(loc.centre - trial.centre))
+    axes[2].set_title(f"{tile_name}: error {err:.1f} px")
+    axes[2].legend(loc="lower right", fontsize=8)
+    for a in axes:
+        a.set_axis_off()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, bbox_inches="tight")
+    plt.close(fig)
 
 
 def plot_errors(errors: dict, path: Path, trials: int, seed: int) -> None:
