@@ -6,7 +6,7 @@ scaled by ``s ~ U[0.9, 1.1]`` (objects appear ``s`` times their size on the tile
 exact sensed -> tile affine is known, so is the truth of the centre.
 
 Photometric change (:data:`PHOTOMETRIC`; every trial gets all of them, each with a random strength
-drawn uniformly from its range; a range that includes the identity can leave one out):
+drawn uniformly from its range; the ranges that include the identity make some trials milder):
 
 * colour cast -- per-channel gain ``U[0.75, 1.25]`` and offset ``U[-20, 20]`` gray levels;
 * gamma ``U[0.6, 1.7]``;
