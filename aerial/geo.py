@@ -8,7 +8,7 @@ A tile folder holds images and a ``map.csv`` with one row per tile::
 (WGS-84 degrees of the outer corners of the top-left and bottom-right pixels; the WildNav layout).
 The tiles are north-up web-map imagery, so longitude is linear in the pixel column and latitude is
 linear in the *Mercator* ordinate ``ln tan(pi/4 + lat/2)`` of the pixel row; over a tile of 200 m
-the difference from a plain linear latitude is below a millimetre, but the Mercator form is the
+the difference from a plain linear latitude is about a millimetre, but the Mercator form is the
 correct one and costs nothing.
 
 Local metres are east/north on the local tangent plane at an origin (default: the centre of all
