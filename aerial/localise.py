@@ -4,7 +4,8 @@ Each image is located independently -- scene matching accumulates no drift (§4.
 the paper's navigation loop (§2), the previous estimate is the next image's rough prior: the
 search is limited to ``prior_radius_m`` around it on the tile that holds it.  The first image uses
 ``prior`` (latitude, longitude) when given; without a prior, or when the previous image could not
-be placed, every tile is tried and the one on which the whole image correlates best wins.
+be placed, or the estimate near the prior correlates poorly (whole-image NCC below ``min_ncc``),
+every tile is searched and the one on which the whole image correlates best wins.
 
 Outputs in ``OUT``: ``track.csv`` (image, tile, x_px, y_px, lat, lon, east_m, north_m,
 scale, rotation_deg, method, ncc, seconds, and error_m when the images folder has a
@@ -66,7 +67,8 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
     config : dict, optional
         Overrides of :data:`aerial.mrsmcc.default_config`.
     min_ncc : float
-        An estimate whose whole-image NCC is lower is reported but not used as the next prior.
+        An estimate near the prior whose whole-image NCC is lower triggers a search of every tile;
+        a final estimate below it is reported but not used as the next prior.
     progress : bool
 
     Returns
@@ -103,13 +105,15 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
             raise DataError(path, "cannot read or decode image")
         t0 = time.perf_counter()
         tile = tiles.tile_at(last) if last is not None else None
+        cands = []
         if tile is not None:
             ti = tiles.index(tile.name)
             xy = tile.latlon_to_pixel(last)
             r_px = prior_radius_m / min(tile.metres_per_pixel())
             cands = [(ti, est(ti).locate(img, prior=((xy[0], xy[1]), r_px)))]
-        else:
-            cands = [(i, est(i).locate(img)) for i in range(len(tiles))]
+        if not cands or not cands[0][1].ncc >= min_ncc:
+            # No prior, or lost near it: search every tile.
+            cands += [(i, est(i).locate(img)) for i in range(len(tiles))]
         ti, loc = max(cands, key=lambda c: np.nan_to_num(c[1].ncc, nan=-np.inf))
         row = {"image": path.name, "tile": tiles[ti].name}
         if np.all(np.isfinite(loc.centre)):

@@ -182,12 +182,13 @@ def make_trials(tile_images, n: int, seed: int, photometric: bool = True,
 
 def write_sequence(tiles, out_dir, n: int = 20, seed: int = 0, step_m: float = 8.0,
                    photometric: bool = True) -> list[dict]:
-    """Write a synthetic UAV sequence: ``n`` sensed images along a straight flight line, and
+    """Write a synthetic UAV sequence: ``n`` sensed images along a flight of straight legs, and
     ``truth.csv`` (image, lat, lon, tile, x, y, scale, rotation_deg).
 
-    The line starts at a random point and heading; consecutive images are ``step_m`` apart.  Each
-    image is cut, as in the Monte-Carlo protocol, from the tile that holds its whole footprint; a
-    point whose footprint fits no single tile ends the line, and a new one starts elsewhere.
+    The flight starts at a random point and heading; consecutive images are ``step_m`` apart.  Each
+    image is cut, as in the Monte-Carlo protocol, from the tile that holds its whole footprint; when
+    the next footprint fits no single tile the flight turns to a random new heading at the last
+    image (and starts afresh elsewhere if no heading works).
 
     Parameters
     ----------
@@ -211,7 +212,7 @@ def write_sequence(tiles, out_dir, n: int = 20, seed: int = 0, step_m: float = 8
     lo = tiles.latlon_to_local([min(lat), min(lon)])
     hi = tiles.latlon_to_local([max(lat), max(lon)])
     size = GEOMETRY["size"]
-    rows, pos, heading, tries = [], None, 0.0, 0
+    rows, pos, heading, tries, last, misses = [], None, 0.0, 0, None, 0
     while len(rows) < n:
         tries += 1
         if tries > 200 * n:
@@ -241,8 +242,15 @@ def write_sequence(tiles, out_dir, n: int = 20, seed: int = 0, step_m: float = 8
                              "rotation_deg": rot})
                 placed = True
                 break
-        # Next point along the line; a point off every tile's interior restarts the line.
-        pos = pos + step_m * np.array([np.cos(heading), np.sin(heading)]) if placed else None
+        if placed:
+            last, misses = pos, 0
+        elif rows and misses < 20:
+            # The footprint left the tiles: turn at the last image and fly on from there.
+            pos, heading, misses = last, rng.uniform(0, 2 * np.pi), misses + 1
+        else:
+            pos, misses = None, 0                        # start a new line elsewhere
+            continue
+        pos = pos + step_m * np.array([np.cos(heading), np.sin(heading)])
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=list(rows[0]))
     w.writeheader()
