@@ -63,6 +63,7 @@ default_config = {
     "attitude_rotations_deg": (-10.0, -7.5, -5.0, -2.5, 0.0, 2.5, 5.0, 7.5, 10.0),  # hypotheses
     "attitude_scales": (0.9, 1.0, 1.1),                          # scale hypotheses
     "attitude_min_ncc": 0.3,        # below this the attitude search gives no prior
+    "attitude_crop": 0.7,           # central part of the image matched (fraction of each side)
     "attitude_radius_px": 32,       # first-iteration search radius around the attitude prior
     "min_ncc": 0.15,                # a region registered with a lower NCC peak is not used
     "global_peaks": 5,              # whole-reference search: NCC peaks kept per region
@@ -273,7 +274,7 @@ class MRSMCC:
         small = cv2.resize(gray, None, fx=f, fy=f, interpolation=cv2.INTER_AREA)
         sh, sw = small.shape
         # Central crop that stays inside the image under every hypothesis.
-        tw, th = int(sw * 0.7), int(sh * 0.7)
+        tw, th = int(sw * cfg["attitude_crop"]), int(sh * cfg["attitude_crop"])
         cs = np.array([(sw - 1) / 2, (sh - 1) / 2])
         temps, hyps = [], []
         for rot in cfg["attitude_rotations_deg"]:
