@@ -1,4 +1,4 @@
-"""Detector block of the online localiser (paper 003, §3.3.1-3.3.2, Fig. 6).
+"""Detector block of the online localiser (McManus et al. 2015, §3.3.1-3.3.2, Fig. 6).
 
 Runs the signature bank of the current place (the localiser says which) on a live image and turns
 the firings into measurements for the eq. 10 solver:
@@ -50,6 +50,8 @@ import numpy as np
 from mapping.refine import default_config as refine_default
 from mapping.store import MapStore, PlaceData
 from signatures.bank import Bank
+from surveys.validation import check_covariance
+from surveys.settings import merge_settings
 from surveys.geometry import Camera, invert, point_pose_jacobian
 
 __all__ = ["default_config", "Observation", "Detector", "search_windows", "measurement_covariance",
@@ -179,7 +181,7 @@ def search_windows(landmarks, landmark_cov, T_place_vehicle, P_prior, camera: Ca
         image (the classifier is not run).
     uv : (n, 2) predicted pixels.
     """
-    cfg = {**default_config, **(config or {})}
+    cfg = merge_settings(default_config, config, "detector")
     uv, J_pose, J_point, front = projection_jacobians(landmarks, T_place_vehicle, camera, T_vehicle_camera,
                                                       cfg["min_depth_m"])
     n = len(uv)
@@ -227,10 +229,7 @@ class Detector:
     """
 
     def __init__(self, store: MapStore, camera: Camera, T_vehicle_camera: np.ndarray, config: dict | None = None):
-        unknown = set(config or {}) - set(default_config)
-        if unknown:
-            raise ValueError(f"unknown detector option(s) {sorted(unknown)}; known: {sorted(default_config)}")
-        self.config = {**default_config, **(config or {})}
+        self.config = merge_settings(default_config, config, "detector")
         self.store = store
         self.camera = camera
         self.T_vehicle_camera = np.asarray(T_vehicle_camera, dtype=float)
@@ -238,9 +237,7 @@ class Detector:
         if Q is None:
             # The covariance the landmarks were refined with, so map and live weights agree.
             Q = (store.params.get("config", {}).get("refine", {}) or {}).get("Q", refine_default["Q"])
-        self.Q = np.asarray(Q, dtype=float)
-        if self.Q.shape != (2, 2) or not np.all(np.linalg.eigvalsh(self.Q) > 0):
-            raise ValueError(f"Q must be a positive definite 2x2 matrix, got {self.Q.tolist()}")
+        self.Q = check_covariance(Q, 2, "Q")
         self._cache: OrderedDict[int, _LoadedPlace] = OrderedDict()
         self._pending: dict[int, Future] = {}
         self._lock = threading.Lock()

@@ -1,4 +1,4 @@
-"""Sliding-window pose graph of the localiser (paper 003, §3.3.2, Fig. 6).
+"""Sliding-window pose graph of the localiser (McManus et al. 2015, §3.3.2, Fig. 6).
 
 The graph holds vehicle poses ``T_world_vehicle`` at *keyframes* over the last ``window_seconds``
 and three kinds of constraint: (i) odometry between consecutive keyframes, (ii) sparse
@@ -29,6 +29,8 @@ import time
 import gtsam
 import numpy as np
 
+from surveys.validation import check_covariance, check_pose
+from surveys.settings import merge_settings
 from surveys.geometry import invert
 
 from .solver import pose_exp, pose_log
@@ -43,7 +45,7 @@ default_config = {
                                   # do not see gets σ = 1000 m / rad instead of a singular system
     "relinearize_threshold": 0.01,
     "extra_iterations": 1,        # extra iSAM2 iterations after a localisation (it can move the window)
-    "failure_distance_m": 20.0,   # paper §4.3: more than 20 m blind is a failure
+    "failure_distance_m": 20.0,   # McManus et al. 2015, §4.3: more than 20 m blind is a failure
 }
 
 
@@ -53,24 +55,11 @@ def _adjoint(T: np.ndarray) -> np.ndarray:
 
 
 def _check_pose(T, name) -> np.ndarray:
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"{name} must be a finite 4x4 pose, got shape {T.shape}")
-    if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or not np.allclose(T[3], [0, 0, 0, 1]):
-        raise ValueError(f"{name} is not a rigid transform (rotation not orthonormal or bad last row)")
-    return T
+    return check_pose(T, name, rigid=True)
 
 
 def _check_spd(M, name) -> np.ndarray:
-    M = np.asarray(M, dtype=float)
-    if M.shape != (6, 6) or not np.all(np.isfinite(M)):
-        raise ValueError(f"{name} must be a finite 6x6 matrix, got shape {M.shape}")
-    M = 0.5 * (M + M.T)
-    try:
-        np.linalg.cholesky(M)
-    except np.linalg.LinAlgError:
-        raise ValueError(f"{name} must be positive definite") from None
-    return M
+    return check_covariance(M, 6, name, symmetrise=True)
 
 
 class DeadReckoningMonitor:
@@ -126,12 +115,7 @@ class PoseGraph:
     def __init__(self, window_seconds: float | None = None, keyframe_interval_s: float | None = None,
                  huber_k: float | None = None, failure_distance_m: float | None = None,
                  config: dict | None = None):
-        cfg = dict(default_config)
-        if config:
-            unknown = set(config) - set(default_config)
-            if unknown:
-                raise ValueError(f"unknown pose-graph option(s) {sorted(unknown)}; known: {sorted(default_config)}")
-            cfg.update(config)
+        cfg = merge_settings(default_config, config, "pose-graph")
         for k, v in (("window_seconds", window_seconds), ("keyframe_interval_s", keyframe_interval_s),
                      ("huber_k", huber_k), ("failure_distance_m", failure_distance_m)):
             if v is not None:

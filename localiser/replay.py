@@ -1,6 +1,6 @@
 """Replay a survey run through the online localiser: ``scenesig localise MAP RUN --out DIR``.
 
-Two modes (issue 5 §1):
+Two modes:
 
 * **deterministic** (default): images and odometry are fed in timestamp order on one thread; the
   detector runs on every ``every``-th frame (4: 5 Hz on a 20 Hz camera, as in the paper) and the
@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from mapping.store import MapStore
+from surveys.settings import merge_settings
 from surveys.errors import DataError
 from surveys.run import SurveyRun, read_run
 
@@ -370,10 +371,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     config : overrides of :data:`default_config` (``localiser`` and ``method`` sub-dicts).
     progress : show a tqdm bar.
     """
-    cfg = {**default_config, **(config or {})}
-    unknown = set(config or {}) - set(default_config)
-    if unknown:
-        raise ValueError(f"unknown replay option(s) {sorted(unknown)}; known: {sorted(default_config)}")
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method"))
     every = int(every)
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
@@ -421,7 +419,7 @@ def localise(map_root, run_root, out, method: str = "signatures", every: int = 4
     """Open the map and the run, replay, write the outputs; returns ``metrics.json``'s content."""
     store = MapStore.open(map_root)
     run = read_run(run_root)
-    cfg = {**default_config, **(config or {})}
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method"))
     result = replay(store, run, method, every=every, realtime=realtime, speed=speed, config=config,
                     progress=progress)
     return write_outputs(result, store, out, cfg["max_path_distance_m"], figure=figure)

@@ -1,4 +1,4 @@
-"""Pose of the vehicle relative to a place from 2D-3D correspondences and a motion prior (paper 003, eq. 10).
+"""Pose of the vehicle relative to a place from 2D-3D correspondences and a motion prior (McManus et al. 2015, eq. 10).
 
 The solver minimises
 
@@ -35,7 +35,7 @@ solution) and the checks: a compact numpy LM on the 6-dof tangent (default: ~2.5
 detections, no allocations beyond a few (N,2,6) arrays) and a GTSAM factor graph
 (``GenericProjectionFactorCal3_S2`` with landmarks as variables held by their map priors, Huber noise
 models, ``LevenbergMarquardtOptimizer``; ~11 ms), kept as an independent reference that the tests
-compare against, and for the benchmark (``scenesig bench solver``).  The same code serves point features (issue 6) via
+compare against, and for the benchmark (``scenesig bench solver``).  The same code serves point features via
 :func:`solve_pnp_prior`, which initialises with OpenCV's PnP + RANSAC.
 """
 from __future__ import annotations
@@ -47,6 +47,8 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from surveys.validation import check_array
+from surveys.settings import merge_settings
 from surveys.geometry import Camera, invert, point_pose_jacobian
 
 __all__ = ["default_config", "SolveResult", "LocalisationConstraint", "solve", "solve_pnp_prior",
@@ -168,9 +170,9 @@ class _Problem:
         self.cfg = cfg
         uv = np.asarray(uv, dtype=float).reshape(-1, 2)
         n = len(uv)
-        self.landmarks = _check_array(landmarks, (n, 3), "landmarks")
-        self.R = _check_array(R, (n, 2, 2), "R")
-        self.landmark_cov = None if landmark_cov is None else _check_array(landmark_cov, (n, 3, 3), "landmark_cov")
+        self.landmarks = check_array(landmarks, (n, 3), "landmarks")
+        self.R = check_array(R, (n, 2, 2), "R")
+        self.landmark_cov = None if landmark_cov is None else check_array(landmark_cov, (n, 3, 3), "landmark_cov")
         if not np.all(np.isfinite(uv)):
             raise ValueError("detections uv contain non-finite values")
         if any(camera.distortion):
@@ -181,12 +183,12 @@ class _Problem:
             camera = dataclasses.replace(camera, distortion=())
         self.uv = uv
         self.camera = camera
-        self.T_vehicle_camera = _check_array(T_vehicle_camera, (4, 4), "T_vehicle_camera")
+        self.T_vehicle_camera = check_array(T_vehicle_camera, (4, 4), "T_vehicle_camera")
         T_cv = invert(self.T_vehicle_camera)
         self.R_cv, self.t_cv = T_cv[:3, :3], T_cv[:3, 3]
-        self.T_prior = None if T_prior is None else _check_array(T_prior, (4, 4), "T_place_vehicle_prior")
+        self.T_prior = None if T_prior is None else check_array(T_prior, (4, 4), "T_place_vehicle_prior")
         if T_prior is not None:
-            P = _check_array(P_prior, (6, 6), "P_prior")
+            P = check_array(P_prior, (6, 6), "P_prior")
             try:
                 self.P_inv = np.linalg.inv(P)
                 np.linalg.cholesky(self.P_inv)
@@ -282,15 +284,6 @@ class _Problem:
         return L, L_det, b, b_det
 
 
-def _check_array(a, shape, name) -> np.ndarray:
-    a = np.asarray(a, dtype=float)
-    if a.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains non-finite values")
-    return a
-
-
 # ---------------------------------------------------------------------------- numpy back end
 def _lm_numpy(prob: _Problem, T0: np.ndarray, idx: np.ndarray, W: np.ndarray):
     cfg = prob.cfg
@@ -364,13 +357,7 @@ def _lm_gtsam(prob: _Problem, T0: np.ndarray, idx: np.ndarray, W: np.ndarray):
 
 # ------------------------------------------------------------------------------------ driver
 def _merge(config: dict | None, defaults: dict) -> dict:
-    cfg = dict(defaults)
-    if config:
-        unknown = set(config) - set(defaults)
-        if unknown:
-            raise ValueError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(defaults)}")
-        cfg.update(config)
-    return cfg
+    return merge_settings(defaults, config, "solver")
 
 
 def _solve(prob: _Problem, T_init: np.ndarray, idx0: np.ndarray, t_start: float, extra=None) -> SolveResult:

@@ -20,6 +20,7 @@ from typing import Callable
 
 import numpy as np
 
+from surveys.validation import check_image
 from surveys.errors import DataError
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "PlaceData", "encode_place", "decode_place", "encode_keyframe", "decode_keyframe",
@@ -49,9 +50,7 @@ def encode_keyframe(image: np.ndarray, width: int = 160, quality: int = 90) -> b
     """A small gray JPEG of ``image`` (BGR or gray uint8) for figures, ``width`` pixels wide."""
     import cv2
 
-    img = np.asarray(image)
-    if img.dtype != np.uint8 or img.ndim not in (2, 3):
-        raise ValueError(f"keyframe must be a uint8 gray or BGR image, got {img.dtype} {img.shape}")
+    img = check_image(image, "keyframe", uint8=True)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     h, w = img.shape

@@ -1,4 +1,4 @@
-"""Point-feature map of a place (the ORB / SIFT baselines of paper 003 §4): keyframe features with 3D points.
+"""Point-feature map of a place (the ORB / SIFT baselines of McManus et al. 2015, §4): keyframe features with 3D points.
 
 The point-feature localiser the paper compares against matches the live image to a *map image* and
 solves for the pose from the 2D-3D correspondences.  Its map, per place:
@@ -47,6 +47,7 @@ import time
 
 import numpy as np
 
+from surveys.settings import merge_settings
 from surveys.geometry import Camera, invert
 from signatures.pointfeatures import PointFeatures, extract, match
 from signatures.pointfeatures import default_config as features_default
@@ -78,11 +79,7 @@ default_config = {
 
 
 def _merge(config: dict | None) -> dict:
-    cfg = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
-    for k, v in (config or {}).items():
-        if k not in cfg:
-            raise ValueError(f"unknown point-map option {k!r}; known: {sorted(cfg)}")
-        cfg[k] = {**cfg[k], **v} if isinstance(cfg[k], dict) else v
+    cfg = merge_settings(default_config, config, "point-map", open=("features",))
     for kind in cfg["kinds"]:
         if kind not in KINDS:
             raise ValueError(f"unknown point-feature kind {kind!r}; choose from {KINDS}")

@@ -1,4 +1,4 @@
-"""Landmark refinement for scene signatures (paper 003, section 3.2.1, eqs. 1-9).
+"""Landmark refinement for scene signatures (McManus et al. 2015, §3.2.1, eqs. 1-9).
 
 Every classifier that survived mining is fired over a window of frames around its place (about +-10 m).
 This module turns those detections into a motion-consistent 3D landmark, or rejects the classifier:
@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from surveys.validation import check_covariance
+from surveys.settings import merge_settings
 from surveys.geometry import Camera, invert
 from mapping.geometry import (
     anchor_rays, camera_depth, camera_poses, derotate_pixels, ideal_camera, ideal_pixels, ray_points,
@@ -552,10 +554,7 @@ def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_v
     -------
     RefineResult
     """
-    cfg = {**default_config, **(config or {})}
-    unknown = set(config or {}) - set(default_config)
-    if unknown:
-        raise ValueError(f"unknown refinement options: {sorted(unknown)}")
+    cfg = merge_settings(default_config, config, "refinement")
     if not isinstance(detections, Detections):
         raise TypeError("detections must be a mapping.refine.Detections")
     N, F = detections.shape
@@ -563,9 +562,7 @@ def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_v
     if T_wp.shape != (F, 4, 4):
         raise ValueError(f"T_window_place must be (F, 4, 4) = ({F}, 4, 4), got {T_wp.shape}")
     T_vc = np.asarray(T_vehicle_camera, dtype=float)
-    Qm = np.asarray(cfg["Q"] if Q is None else Q, dtype=float)
-    if Qm.shape != (2, 2) or not np.all(np.linalg.eigvalsh(Qm) > 0):
-        raise ValueError(f"Q must be a positive definite 2x2 covariance, got {Qm.tolist()}")
+    Qm = check_covariance(cfg["Q"] if Q is None else Q, 2, "Q")
     Qinv = np.linalg.inv(Qm)
     if reference is None:
         reference = int(np.argmin(np.linalg.norm(invert(T_wp)[:, :3, 3], axis=1)))

@@ -43,6 +43,7 @@ from typing import Callable
 
 import numpy as np
 
+from surveys.validation import check_pose
 from surveys.errors import DataError
 from surveys.io import atomic_write_bytes, fsync_dir
 
@@ -83,10 +84,7 @@ def _canonical(obj) -> str:
 
 
 def _pose_list(T) -> list:
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise ValueError(f"a pose must be a finite 4x4 matrix, got shape {T.shape}")
-    return [[float(x) for x in row] for row in T]
+    return [[float(x) for x in row] for row in check_pose(T, "a place pose")]
 
 
 # --------------------------------------------------------------------------------------------------------

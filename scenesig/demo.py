@@ -32,6 +32,8 @@ import sys
 import time
 from pathlib import Path
 
+from surveys.settings import merge_settings
+
 __all__ = ["default_config", "run_demo"]
 
 default_config = {
@@ -115,10 +117,7 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     from .plots import write_matching
     from .report import build_report
 
-    cfg = {**default_config, **(config or {})}
-    unknown = set(config or {}) - set(default_config)
-    if unknown:
-        raise ValueError(f"unknown demo option(s) {sorted(unknown)}; known: {sorted(default_config)}")
+    cfg = merge_settings(default_config, config, "demo")
     every = round(float(cfg["camera_hz"]) / float(cfg["detector_hz"]))
     if every < 1 or abs(every * float(cfg["detector_hz"]) - float(cfg["camera_hz"])) > 1e-6:
         raise ValueError(f"camera rate {cfg['camera_hz']} Hz must be a multiple of the detector rate "

@@ -33,6 +33,7 @@ import numpy as np
 from mapping.pointmap import point_features
 from mapping.store import MapStore
 from signatures.bank import Bank
+from surveys.settings import merge_settings
 from surveys.errors import DataError
 from surveys.geometry import interpolate_poses, yaw_of
 from surveys.run import SurveyRun, read_run
@@ -48,7 +49,7 @@ __all__ = ["default_config", "MatchingResult", "aligned_frame", "signature_match
            "frame_distances", "ins_errors", "speed", "dead_reckoning", "summary_rows", "find_runs"]
 
 default_config = {
-    "delta_px": 15.0,               # paper §4.2: a match agrees when within 15 px in both images
+    "delta_px": 15.0,               # McManus et al. 2015, §4.2: a match agrees when within 15 px in both images
     "methods": ["signatures", "orb", "sift"],
     "max_frame_distance_m": 5.0,    # a run whose nearest frame is further than this does not pass the place
     "max_heading_deg": 30.0,
@@ -58,13 +59,8 @@ default_config = {
 }
 
 
-
 def _merge(config: dict | None) -> dict:
-    cfg = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
-    for k, v in (config or {}).items():
-        if k not in cfg:
-            raise ValueError(f"unknown experiment option {k!r}; known: {sorted(cfg)}")
-        cfg[k] = {**cfg[k], **v} if isinstance(cfg[k], dict) else v
+    cfg = merge_settings(default_config, config, "experiment", open=("point",))
     bad = [m for m in cfg["methods"] if m not in ("signatures", "orb", "sift")]
     if bad:
         raise ValueError(f"unknown method(s) {bad}; choose from signatures, orb, sift")

@@ -1,6 +1,6 @@
 """A bank of scene-signature classifiers for one place, and one-pass detection of the whole bank.
 
-A :class:`Classifier` is a linear filter over a window of FHOG cells (paper §3.2: one SVM per
+A :class:`Classifier` is a linear filter over a window of FHOG cells (McManus et al. 2015, §3.2: one SVM per
 scene signature) with the shape it was mined from, its nominal position and scale, and the
 score-to-probability calibration lambda of eq. (5).  A :class:`Bank` holds the classifiers of a
 place, stores to and from plain arrays (the map store writes that dict), and detects all of them in
@@ -23,6 +23,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from surveys.settings import merge_settings
 
 from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
 from signatures.hog import level_scale, level_size, window_cell
@@ -353,7 +355,7 @@ class Bank:
         -------
         Detections
         """
-        cfg = {**default_config, **(config or {})}
+        cfg = merge_settings(default_config, config, "detection")
         n = len(self)
         if isinstance(image, HogPyramid):
             pyr = image

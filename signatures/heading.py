@@ -1,5 +1,5 @@
 """Scene-signature heading estimation on GRIEF data sets (the *signatures* method of the heading
-benchmark, issue §5).
+benchmark).
 
 For a protocol pair (map image i, live image j) of one place the horizontal displacement of the
 scene is estimated from a bank of scene signatures of that place that never saw image j:
@@ -47,6 +47,7 @@ import numpy as np
 
 from signatures import hog as hogmod
 from signatures import mining
+from surveys.settings import merge_settings
 
 __all__ = ["default_config", "SignatureHeading", "estimate_heading_signatures", "vote_displacement",
            "augment"]
@@ -246,14 +247,9 @@ class SignatureHeading:
             from surveys.grief import load
             dataset = load(dataset)
         self.dataset = dataset
-        cfg = {**default_config}
-        if dataset.kind == "sequence":
-            cfg.update(sequence_overrides)
-        cfg.update(config or {})
-        unknown = set(config or {}) - set(default_config)
-        if unknown:
-            raise ValueError(f"unknown heading config keys: {', '.join(sorted(unknown))}")
-        self.config = cfg
+        base = merge_settings(default_config, sequence_overrides if dataset.kind == "sequence" else None,
+                              "heading", open=("mining",))
+        self.config = merge_settings(base, config, "heading", open=("mining",))
         self.n_jobs = int(n_jobs)
         self.progress = progress
         self.records: dict = {}

@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from surveys.settings import merge_settings
+
 __all__ = ["default_config", "FEATURE_DIM", "fhog", "HogPyramid", "build_pyramid", "level_scale",
            "level_size", "window_cell", "resize_area_region", "to_gray_float", "REGION_MARGIN_CELLS"]
 
@@ -490,8 +492,7 @@ def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None, re
     HogPyramid
         With ``regions`` recording the partly computed levels.
     """
-    cfg = {**default_config, **(config or {})}
-    cfg = {k: cfg[k] for k in default_config}
+    cfg = merge_settings(default_config, config, "HOG")
     spo, cell = int(cfg["scales_per_octave"]), int(cfg["cell"])
     tune_malloc()        # before the first resize, not only the first fhog (see tune_malloc)
     img = to_gray_float(image, bool(cfg["color"]))

@@ -1,4 +1,4 @@
-"""Iterative discriminative clustering of candidate shapes for one place (paper §3.2, Fig. 3).
+"""Iterative discriminative clustering of candidate shapes for one place (McManus et al. 2015, §3.2, Fig. 3).
 
 For every candidate shape of the fixed template (:mod:`signatures.shapes`):
 
@@ -52,6 +52,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from surveys.validation import check_image
+from surveys.settings import merge_settings
 
 from signatures import hog as hogmod
 from signatures.bank import Bank, Classifier
@@ -134,11 +137,8 @@ class MiningStats:
 
 
 def _merge(config: dict | None) -> dict:
-    cfg = {**default_config, **(config or {})}
-    unknown = set(config or {}) - set(default_config)
-    if unknown:
-        raise ValueError(f"unknown mining config keys: {', '.join(sorted(unknown))}")
-    cfg["hog"] = {**hogmod.default_config, **(cfg["hog"] or {})}
+    cfg = merge_settings(default_config, config, "mining", open=("hog",))
+    cfg["hog"] = merge_settings(hogmod.default_config, cfg["hog"] or None, "HOG")
     if cfg["n_partitions"] < 2:
         raise ValueError("n_partitions must be >= 2")
     if cfg["min_nominal_level"] < cfg["scale_search"]:
@@ -640,10 +640,7 @@ def _mine_chunk(pd: _Place, items):
 
 
 def _as_image(img, what: str, i: int) -> np.ndarray:
-    a = np.asarray(img)
-    if a.ndim not in (2, 3) or a.size == 0:
-        raise ValueError(f"{what} {i}: expected a gray or BGR image array, got shape {a.shape}")
-    return a
+    return check_image(img, f"{what} {i}")
 
 
 def mine_place(images, offsets=None, config: dict | None = None, negatives=None, n_jobs: int = 1,

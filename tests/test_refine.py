@@ -252,7 +252,7 @@ def test_refinement_is_deterministic_and_validates_input():
     np.testing.assert_array_equal(a.reason, b.reason)
     np.testing.assert_array_equal(a.points, b.points)
     assert a.counts()["kept"] > 40
-    with pytest.raises(ValueError, match="unknown refinement options"):
+    with pytest.raises(ValueError, match="unknown refinement option"):
         refine_landmarks(*args, config={"huber": 1.0})
     with pytest.raises(ValueError, match="T_window_place"):
         refine_landmarks(w["detections"], w["T_window_place"][:5], w["camera"], w["T_vehicle_camera"])
