@@ -382,14 +382,13 @@ class MRSMCC:
             radius = int(cfg["search_radius_px"])
             if fit is None:
                 if from_attitude and last is None:
-                    # The attitude prior was wrong: search the whole reference instead.
+                    # The attitude prior was wrong: search the whole reference instead (the failed
+                    # attempt counts as an iteration).
                     T, from_attitude = None, False
                     continue
                 if T is not None and last is not None:
                     break                         # keep the previous iteration's estimate
-                result = self._whole_image(gray, T, T_att, att_ncc, rough, len(regions))
-                T = result[-1]
-                result = result[:-1]
+                *result, T = self._whole_image(gray, T, T_att, att_ncc, rough, len(regions))
                 break
             T = fit.transform
             inl = int(np.sum(fit.errors <= float(cfg["consistency_px"])))
