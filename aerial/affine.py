@@ -22,6 +22,8 @@ from itertools import combinations
 
 import numpy as np
 
+from surveys.settings import merge_settings
+
 __all__ = ["affine_from_triple", "apply_affine", "TripleFit", "best_consistent_triple",
            "scale_rotation", "default_config", "AffineEstimate", "ransac_affine"]
 
@@ -120,7 +122,7 @@ def best_consistent_triple(src, dst, config: dict | None = None,
     TripleFit or None
         None when N < 4 or no triple passes the guards.
     """
-    cfg = {**default_config, **(config or {})}
+    cfg = merge_settings(default_config, config, "affine")
     src = np.asarray(src, dtype=float)
     dst = np.asarray(dst, dtype=float)
     n = len(src)

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from surveys.settings import merge_settings
+
 __all__ = ["default_config", "LandmarkModel", "Region"]
 
 log = logging.getLogger(__name__)
@@ -103,11 +105,10 @@ class LandmarkModel:
     """
 
     def __init__(self, config: dict | None = None):
-        cfg = {**default_config, **(config or {})}
-        unknown = set(config or {}) - set(default_config)
-        if unknown:
-            raise ValueError(f"unknown landmark config keys: {', '.join(sorted(unknown))}")
-        self.config = cfg
+        # A caller's "types" replaces the whole set of landmark types.
+        self.config = merge_settings(default_config, config, "landmark", open=("types",))
+        if config and "types" in config:
+            self.config["types"] = dict(config["types"])
 
     def _index(self, image: np.ndarray) -> np.ndarray:
         b = int(self.config["bins"])

@@ -45,6 +45,7 @@ from aerial.sism import ReferenceImage
 from aerial.trials import sensed_centre
 from signatures.colour import (exact_histogram_match, local_exact_histogram_match,
                                match_histograms)
+from surveys.settings import merge_settings
 
 __all__ = ["default_config", "MRSMCC", "Localisation", "translation_affine"]
 
@@ -144,10 +145,7 @@ class MRSMCC:
     """
 
     def __init__(self, config: dict | None = None, landmarks: LandmarkModel | None = None):
-        unknown = set(config or {}) - set(default_config)
-        if unknown:
-            raise ValueError(f"unknown MRSM-CC config keys: {', '.join(sorted(unknown))}")
-        self.config = {**default_config, **(config or {})}
+        self.config = merge_settings(default_config, config, "MRSM-CC", open=("affine", "landmarks"))
         self.landmarks = landmarks
 
     # ------------------------------------------------------------------ fit

@@ -16,6 +16,7 @@ import numpy as np
 from aerial.affine import AffineEstimate, ransac_affine
 from aerial.trials import sensed_centre
 from signatures import pointfeatures as pf
+from surveys.settings import merge_settings
 
 __all__ = ["default_config", "PointMatcher"]
 
@@ -35,10 +36,7 @@ class PointMatcher:
     """SIFT / ORB + ratio test + RANSAC affine against one reference image (estimator API)."""
 
     def __init__(self, config: dict | None = None):
-        unknown = set(config or {}) - set(default_config)
-        if unknown:
-            raise ValueError(f"unknown point-matcher config keys: {', '.join(sorted(unknown))}")
-        self.config = {**default_config, **(config or {})}
+        self.config = merge_settings(default_config, config, "point-matcher")
 
     def _extract(self, image, n):
         return pf.extract(image, self.config["kind"], n_features=int(n), upright=False)

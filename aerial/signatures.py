@@ -30,6 +30,7 @@ from signatures import mining
 from signatures.bank import Bank
 from signatures.heading import augment
 from surveys.io import atomic_path
+from surveys.settings import merge_settings
 
 __all__ = ["default_config", "SignatureMatcher"]
 
@@ -52,10 +53,7 @@ class SignatureMatcher:
     """Scene-signature bank of one tile, matched by detections + RANSAC affine (estimator API)."""
 
     def __init__(self, config: dict | None = None, cache_dir=None):
-        unknown = set(config or {}) - set(default_config)
-        if unknown:
-            raise ValueError(f"unknown signature-matcher config keys: {', '.join(sorted(unknown))}")
-        self.config = {**default_config, **(config or {})}
+        self.config = merge_settings(default_config, config, "signature-matcher", open=("mining",))
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
 
     def _shapes(self, w: int, h: int) -> dict:

@@ -16,6 +16,7 @@ import numpy as np
 from aerial.ncc import ReferenceNCC, local_match, to_gray
 from aerial.trials import sensed_centre
 from signatures.colour import channel_histograms
+from surveys.settings import merge_settings
 
 __all__ = ["default_config", "ReferenceImage", "SISM", "SismResult"]
 
@@ -85,10 +86,7 @@ class SISM:
     """Single-image scene matching against one reference image (estimator API)."""
 
     def __init__(self, config: dict | None = None):
-        unknown = set(config or {}) - set(default_config)
-        if unknown:
-            raise ValueError(f"unknown SISM config keys: {', '.join(sorted(unknown))}")
-        self.config = {**default_config, **(config or {})}
+        self.config = merge_settings(default_config, config, "SISM")
 
     def fit(self, reference: np.ndarray) -> "SISM":
         self.reference_ = ReferenceImage(np.asarray(reference), float(self.config["coarse_scale"]))

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from surveys.io import atomic_path, atomic_write_text
+from surveys.settings import merge_settings
 
 __all__ = ["PHOTOMETRIC", "GEOMETRY", "Trial", "make_trial", "make_trials", "photometric_change",
            "sensed_centre", "cut_sensed", "write_sequence"]
@@ -121,7 +122,7 @@ def photometric_change(image: np.ndarray, rng: np.random.Generator,
 
     Returns the changed image and the drawn parameters.
     """
-    r = {**PHOTOMETRIC, **(ranges or {})}
+    r = merge_settings(PHOTOMETRIC, ranges, "photometric")
     h, w = image.shape[:2]
     p = {"gain": rng.uniform(*r["gain"], size=3), "offset": rng.uniform(*r["offset"], size=3),
          "gamma": rng.uniform(*r["gamma"]), "contrast": rng.uniform(*r["contrast"]),
