@@ -40,7 +40,7 @@ import numpy as np
 
 from aerial import affine as affmod
 from aerial.landmarks import LandmarkModel
-from aerial.ncc import local_match, to_gray
+from aerial.ncc import local_match
 from aerial.sism import ReferenceImage
 from aerial.trials import sensed_centre
 from signatures.colour import (exact_histogram_match, local_exact_histogram_match,
@@ -64,6 +64,7 @@ default_config = {
     "attitude_rotations_deg": (-10.0, -7.5, -5.0, -2.5, 0.0, 2.5, 5.0, 7.5, 10.0),  # hypotheses
     "attitude_scales": (0.9, 1.0, 1.1),                          # scale hypotheses
     "attitude_min_ncc": 0.3,        # below this the attitude search gives no prior
+    "highpass_sigma": 12.0,         # NCC on gray minus its Gaussian blur of this sigma (0: off)
     "attitude_crop": 0.7,           # central part of the image matched (fraction of each side)
     "attitude_radius_px": 32,       # first-iteration search radius around the attitude prior
     "min_ncc": 0.15,                # a region registered with a lower NCC peak is not used
@@ -158,7 +159,8 @@ class MRSMCC:
             cfg = {"region_size": int(self.config["region_size"]), **self.config["landmarks"]}
             self.landmarks = LandmarkModel(cfg).fit([ref])
         self.reference_ = ReferenceImage(ref, float(self.config["coarse_scale"]),
-                                         float(self.config["attitude_scale"]))
+                                         float(self.config["attitude_scale"]),
+                                         float(self.config["highpass_sigma"]))
         return self
 
     # ------------------------------------------------------------------ steps
@@ -359,7 +361,7 @@ class MRSMCC:
         from_attitude, T_att, att_ncc = False, None, -np.inf
         if T is None and rough is None:
             first = self.colour_constancy(sensed) if cfg["colour_constancy"] else sensed
-            T_att, att_ncc = self.attitude(to_gray(first))
+            T_att, att_ncc = self.attitude(self.reference_.to_gray(first))
             if att_ncc >= float(cfg["attitude_min_ncc"]):
                 T, from_attitude, radius = T_att, True, int(cfg["attitude_radius_px"])
         last = None
@@ -367,7 +369,7 @@ class MRSMCC:
         result = None
         for it in range(1, int(cfg["max_iterations"]) + 1):
             img = self.colour_constancy(sensed, T, rough) if cfg["colour_constancy"] else sensed
-            gray = to_gray(img)
+            gray = self.reference_.to_gray(img)
             regions = self.landmarks.regions(img)
             fit = None
             if len(regions) >= int(cfg["min_regions"]):
@@ -396,12 +398,12 @@ class MRSMCC:
                 break
             last = P
         if result is None:                        # every iteration was spent without a fit
-            *result, T = self._whole_image(to_gray(sensed), None, T_att, att_ncc, rough, 0)
+            *result, T = self._whole_image(self.reference_.to_gray(sensed), None, T_att, att_ncc, rough, 0)
         method, emin, score, s_, d_, nreg = result
         if not np.all(np.isfinite(T)):
             return Localisation(np.full(2, np.nan), T, np.nan, np.nan, it, nreg, method, emin, score,
                                 s_, d_, -np.inf, time.perf_counter() - t0)
         scale, rot = affmod.scale_rotation(T)
-        _, ncc = self.refine_whole(to_gray(sensed), T, 0)
+        _, ncc = self.refine_whole(self.reference_.to_gray(sensed), T, 0)
         return Localisation(affmod.apply_affine(T, c), T, scale, rot, it, nreg, method, emin,
                             score, s_, d_, ncc, time.perf_counter() - t0)

@@ -31,9 +31,11 @@ class ReferenceImage:
     """A reference (BGR uint8) prepared for matching: gray at full, coarse and attitude-search
     resolution with FFT NCC on the two reduced ones, and its colour histogram (for EHM)."""
 
-    def __init__(self, image: np.ndarray, coarse_scale: float, attitude_scale: float | None = None):
+    def __init__(self, image: np.ndarray, coarse_scale: float, attitude_scale: float | None = None,
+                 highpass_sigma: float = 0.0):
         self.image = image
-        self.gray = to_gray(image)
+        self.highpass_sigma = float(highpass_sigma)
+        self.gray = self.to_gray(image)
         self.coarse_scale = float(coarse_scale)
         self.coarse = cv2.resize(self.gray, None, fx=coarse_scale, fy=coarse_scale,
                                  interpolation=cv2.INTER_AREA)
@@ -44,6 +46,13 @@ class ReferenceImage:
             self.small = cv2.resize(self.gray, None, fx=attitude_scale, fy=attitude_scale,
                                     interpolation=cv2.INTER_AREA)
             self.small_ncc = ReferenceNCC(self.small)
+
+    def to_gray(self, image: np.ndarray) -> np.ndarray:
+        """Gray image as matched: luminance, minus its Gaussian blur when ``highpass_sigma`` > 0."""
+        g = to_gray(image)
+        if self.highpass_sigma > 0:
+            g = g - cv2.GaussianBlur(g, (0, 0), self.highpass_sigma)
+        return g
 
     def prior_ncc(self, prior, tshape):
         """A ReferenceNCC on the coarse window around a rough prior ((x, y), radius) in full-res
