@@ -25,6 +25,12 @@ The sensed image is located on a geo-referenced reference image by iterating the
 6. **Iterate** (Step 7) until the located centre moves less than ``epsilon_px`` (eq. 1), at most
    ``max_iterations`` times.
 
+NCC compares *high-passed* gray images (each minus its Gaussian blur, ``highpass_sigma`` = 12 px):
+NCC already ignores a window's brightness and contrast, and this also removes illumination that
+varies inside a window -- shadow blobs, haze and vignetting gradients -- which no per-window
+histogram transfer can undo.  On the seed-0 development trials it raised the success rate from
+90 % to 100 %.
+
 ``conf`` holds the paper's values where it gives them (5 x 5 windows, 64 x 64 regions, more than
 three regions for multi-region matching; the 25-px success radius lives in the benchmark); the
 rest are this implementation's, chosen on the Monte-Carlo trials of seed 0 on the WildNav tiles
