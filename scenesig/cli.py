@@ -27,6 +27,7 @@ COMMANDS = (
     "bench",
     "importers",
     "check",
+    "aerial",
 )
 
 #: second-level command groups (``scenesig GROUP ACTION``); a group appears once a command uses it

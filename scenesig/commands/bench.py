@@ -25,6 +25,7 @@ BENCHMARKS = {
     "kitti-import": ("kitti_import", "KITTI raw import speed, frames/s on one core (decode + write)."),
     "kitti-drive": ("kitti_drive", "KITTI snippet end to end: camera-2 map; camera 3, darkened camera 3 localised."),
     "strict_decode": ("strict_decode", "Cost per VGA frame and catch rate of strict image decoding."),
+    "aerial": ("aerial", "Monte-Carlo UAV-to-satellite-map matching (MRSM-CC and baselines)."),
 }
 
 

@@ -1,0 +1,6 @@
+"""scenesig: aerial -- UAV-to-map scene matching against geo-referenced satellite tiles.
+
+MRSM-CC (Jin et al., "A multi-region scene matching based localisation system for UAVs", Journal
+of Navigation 2016) with its single-image baseline SISM, point-feature baselines (SIFT, ORB) and a
+scene-signature matcher, the seed's Monte-Carlo trial generator, and sequence localisation.
+"""
