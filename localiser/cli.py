@@ -63,6 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--out", required=True, help="map folder, e.g. maps/NAME")
     m.add_argument("--jobs", type=_positive_int, default=1, help="places built in parallel (joblib)")
     m.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
+    m.add_argument("--frames-per-run", type=_positive_int, default=None, metavar="N",
+                   help="frames each run gives a place (neighbours within its 10 m segment; default: enough "
+                        "for six images per place, at most 3, i.e. 1 with six runs or more)")
+    m.add_argument("--config", default=None, help="build options (mapping.build.default_config) as JSON text or a .json file")
 
     ms = sub.add_parser("map", help="Inspect a map.")
     mss = ms.add_subparsers(dest="map_command", required=True, metavar="ACTION")
