@@ -89,8 +89,52 @@ def test_build_where_no_place_keeps_a_signature_exits_2_and_writes_no_map(world,
     summary = json.loads((out / "build_summary.json").read_text())
     assert summary["places_weak"] == list(range(summary["places"]))
     assert all(p["rejected"]["no_data"] > 0 for p in summary["per_place"])
-    # a re-run with more frames per run starts afresh in the same folder
-    cfg.pop("frames_per_run"), cfg.pop("min_images")
-    assert cli(["build-map", *[str(r.root) for r in train], "--reference", str(train[0].root), "--out", str(out),
-                "--config", json.dumps(cfg)]) == 0
-    assert (out / "manifest.json").is_file()
+    # nothing half-built is left to resume: a re-run with other settings starts afresh in the same folder
+    assert not (out / "journal.jsonl").exists()
+
+
+def _view(positions, frame):
+    """A TrainingView along x (no run: only its window geometry is used)."""
+    from mapping.places import TrainingView
+    from surveys.geometry import make_pose
+
+    window = np.arange(len(positions))
+    T = np.stack([make_pose(np.eye(3), [x - positions[frame], 0.0, 0.0]) for x in positions])
+    return TrainingView(None, frame, window, T, 0.0)
+
+
+def test_neighbour_frames_alternate_ahead_and_behind_within_the_segment():
+    from mapping.places import neighbour_frames
+
+    v = _view(np.arange(0.0, 10.01, 0.5), frame=10)          # 0.5 m apart, training frame at 5 m
+    assert neighbour_frames(v, 1, 1.0, 5.0).tolist() == [10]
+    assert neighbour_frames(v, 3, 1.0, 5.0).tolist() == [10, 12, 8]
+    assert neighbour_frames(v, 5, 2.0, 5.0).tolist() == [10, 14, 6, 18, 2]
+    # never beyond the segment, so at most 1 + 2 * 2 frames 2 m apart within 5 m
+    assert len(neighbour_frames(v, 9, 2.0, 5.0)) == 5
+    # at the start of a run only frames ahead exist
+    assert neighbour_frames(_view(np.arange(0.0, 10.01, 0.5), frame=0), 3, 1.0, 5.0).tolist() == [0, 2, 4]
+    # stopped for ten frames: frames at the same spot are no new viewpoints, the next ones ahead are taken
+    stop = np.r_[np.zeros(10), np.arange(0.5, 5.01, 0.5)]
+    assert neighbour_frames(_view(stop, frame=5), 3, 1.0, 5.0).tolist() == [5, 11, 13]
+
+
+def test_six_runs_mine_exactly_the_papers_training_images():
+    """Six runs or more: one frame per run, no augmentation -- such maps are built as before."""
+    from mapping.build import frames_per_run, mining_images, _merge
+    from mapping.places import Place
+
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 255, (24, 32), dtype=np.uint8) for _ in range(6)]
+    views = [_view(np.arange(0.0, 10.01, 0.5), frame=10) for _ in range(6)]
+    out, offsets, counts = mining_images(Place(0, np.eye(4), 5.0, 10), views, images)
+    assert len(out) == 6 and all(a is b for a, b in zip(out, images))
+    assert not offsets.any() and counts == {"frames_per_run": 1, "frames": 6, "augmented": 0}
+    cfg = _merge(None)
+    assert [frames_per_run(cfg, n) for n in (1, 2, 3, 4, 5, 6, 12)] == [3, 3, 2, 2, 2, 1, 1]
+    # one run, one frame each: augmented copies fill the place up to min_images, shifted as they report
+    out, offsets, counts = mining_images(Place(0, np.eye(4), 5.0, 10), views[:1], images[:1],
+                                         {"frames_per_run": 1})
+    assert counts == {"frames_per_run": 1, "frames": 1, "augmented": 5} and len(out) == 6
+    assert all(o.shape == images[0].shape and o.dtype == np.uint8 for o in out)
+    assert offsets[0].tolist() == [0.0, 0.0] and np.all(np.abs(offsets[1:, 0]) <= 8.0) and not offsets[:, 1].any()
