@@ -377,9 +377,9 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
         raise ValueError(f"reference run {reference.name!r} is too short to define a place")
     if len(train) == 1:
         n = frames_per_run(cfg, 1)
-        log.warning(f"a map from one survey run ({reference.name}): each place is mined from {n} neighbouring "
-                    f"frames and {max(0, int(cfg['min_images']) - n)} augmented copies of them; it has seen one "
-                    f"appearance, so expect it to localise runs of similar appearance only")
+        log.warning(f"a map from one survey run ({reference.name}): each place is mined from up to {n} frames "
+                    f"around it and augmented copies of them (at least {int(cfg['min_images'])} images); it "
+                    f"has seen one appearance, so expect it to localise runs of similar appearance only")
     params = {"config": cfg, "reference": reference.name, "runs": names}
     writer = MapWriter(out, reference.camera, reference.T_vehicle_camera, params)
 
