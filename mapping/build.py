@@ -28,16 +28,14 @@ Places are independent, so they build in parallel: joblib locally, or a Dask dis
 ``--scheduler``.  The driver process alone writes the map (:class:`mapping.store.MapWriter`), so an
 interrupted build resumes where it stopped and produces the same bytes.
 
-``python -m mapping.build RUN... --reference RUN --out maps/NAME`` is the same as ``scenesig build-map``.
+The command line is ``scenesig build-map RUN... --reference RUN --out maps/NAME [--config JSON]``.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import math
 import os
-import sys
 import time
 from pathlib import Path
 
@@ -45,7 +43,7 @@ import numpy as np
 
 from surveys.errors import DataError
 from surveys.geometry import invert
-from surveys.run import SurveyRun, read_run
+from surveys.run import SurveyRun
 from signatures.augment import augment
 from signatures.mining import mine_place
 from signatures.bank import default_config as bank_default_config
@@ -57,7 +55,7 @@ from mapping.pointmap import build_point_features
 from mapping.refine import Detections, REASONS, refine_landmarks
 from mapping.store import MapWriter, PlaceData, atomic_write_bytes, decode_place, encode_keyframe, place_file_name
 
-__all__ = ["default_config", "build_map", "build_place", "mining_images", "run_from_args"]
+__all__ = ["default_config", "build_map", "build_place", "mining_images", "load_config"]
 
 log = logging.getLogger(__name__)
 
@@ -588,7 +586,7 @@ def _bytes_by_part(files) -> dict:
     return {k: (v / len(files) if files else 0.0) for k, v in totals.items()}
 
 
-def _load_config(text: str | None) -> dict | None:
+def load_config(text: str | None) -> dict | None:
     """``--config``: build options (see :data:`default_config`) as JSON text or a ``.json`` file."""
     if not text:
         return None
@@ -597,50 +595,8 @@ def _load_config(text: str | None) -> dict | None:
     try:
         cfg = json.loads(src)
     except json.JSONDecodeError as exc:
-        from surveys.errors import DataError
         raise DataError(path if src is not text else None, f"--config is not valid JSON: {exc.msg}",
                         line=exc.lineno) from None
     if not isinstance(cfg, dict):
         raise ValueError("--config must be a JSON object of build options")
     return cfg
-
-
-def run_from_args(args) -> int:
-    runs = [read_run(r) for r in args.runs]
-    ref_path = Path(args.reference).resolve()
-    reference = next((r for r in runs if r.root.resolve() == ref_path), None) or read_run(args.reference)
-    config = _load_config(getattr(args, "config", None)) or {}
-    if getattr(args, "frames_per_run", None) is not None:
-        config["frames_per_run"] = int(args.frames_per_run)
-    summary = build_map(runs, reference, args.out, jobs=args.jobs, scheduler=args.scheduler, config=config)
-    print_places(summary, file=sys.stderr)
-    print(json.dumps({k: v for k, v in summary.items() if k != "per_place"}, indent=2))
-    return 0
-
-
-def print_places(summary: dict, file=sys.stderr) -> None:
-    """Per place: runs, images mined (frames+augmented copies), signatures kept, rejected shapes by reason."""
-    rows = summary.get("per_place") or []
-    reasons = ["no_data", "textureless", "not_converged", *REASONS]
-    weak = set(summary.get("places_weak") or [])
-    print(f"{'place':>5s} {'runs':>4s} {'images':>7s} {'kept':>5s}       rejected: "
-          + " ".join(f"{r:>13s}" for r in reasons), file=file)
-    for p in rows:
-        images = f"{p.get('frames') or 0}+{p.get('augmented') or 0}"
-        rej = p.get("rejected") or {}
-        print(f"{p['place']:5d} {p.get('runs') or 0:4d} {images:>7s} {p['signatures']:5d} "
-              f"{'weak' if p['place'] in weak else '    '}{'':>12s}"
-              + " ".join(f"{rej.get(r, 0):13d}" for r in reasons), file=file)
-
-
-if __name__ == "__main__":
-    from localiser.cli import main as _cli  # noqa: F401  (same arguments as `scenesig build-map`)
-    p = argparse.ArgumentParser(prog="python -m mapping.build")
-    p.add_argument("runs", nargs="+")
-    p.add_argument("--reference", required=True)
-    p.add_argument("--out", required=True)
-    p.add_argument("--jobs", type=int, default=1)
-    p.add_argument("--scheduler", default=None)
-    p.add_argument("--config", default=None, help="build options as JSON text or a .json file")
-    p.add_argument("--frames-per-run", type=int, default=None)
-    sys.exit(run_from_args(p.parse_args()))

@@ -10,7 +10,7 @@ import pytest
 
 pytest.importorskip("surveys.sim.simulate")
 
-from localiser.cli import main as cli  # noqa: E402
+from scenesig.cli import main as cli  # noqa: E402
 
 TRAINING = ["sunny", "overcast", "rain"]
 #: a reduced candidate template (76 shapes) and refinement window: the default code path, faster
