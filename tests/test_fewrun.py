@@ -28,7 +28,7 @@ def world(tmp_path_factory):
     from surveys.sim.simulate import simulate
 
     root = tmp_path_factory.mktemp("fewrun")
-    simulate(root / "runs", preset="tiny", seed=1, runs=TRAINING + ["sunny"], camera_hz=5.0, jobs=2,
+    simulate(root / "runs", preset="tiny", seed=1, runs=TRAINING + ["sunny"], camera_hz=5.0, jobs=1,
              show_progress=False)
     runs = [read_run(p) for p in sorted((root / "runs").iterdir()) if p.is_dir()]
     return root, runs[:3], runs[3]
@@ -40,7 +40,7 @@ def test_three_run_map_has_signatures_everywhere_and_localises_a_day_run(world, 
     from mapping.coverage import weak_places
 
     root, train, live = world
-    summary = build_map(train, train[0], tmp_path / "map", jobs=2, progress=False, config=CONFIG)
+    summary = build_map(train, train[0], tmp_path / "map", jobs=1, progress=False, config=CONFIG)
     per_place = summary["per_place"]
     assert len(per_place) == summary["places"] >= 5
     # three runs: two frames each (six images, two per partition), no augmentation needed
@@ -60,12 +60,13 @@ def test_three_run_map_has_signatures_everywhere_and_localises_a_day_run(world, 
 
 
 def test_one_run_map_builds_from_frames_and_augmented_copies(world, tmp_path, caplog):
+    from build_world import SHAPES as SMALL_SHAPES
     from mapping.build import build_map
 
     root, train, _ = world
-    cfg = {**CONFIG, "places": {"spacing_m": 20.0}}
+    cfg = {**CONFIG, "places": {"spacing_m": 20.0}, "mining": {"shapes": SMALL_SHAPES}}
     with caplog.at_level(logging.WARNING):
-        summary = build_map(train[:1], train[0], tmp_path / "one", jobs=2, progress=False, config=cfg)
+        summary = build_map(train[:1], train[0], tmp_path / "one", jobs=1, progress=False, config=cfg)
     assert (tmp_path / "one" / "manifest.json").is_file()
     per_place = summary["per_place"]
     # one run: three neighbouring frames and three augmented copies per place
