@@ -151,9 +151,8 @@ def neighbour_frames(view: TrainingView, n: int, step_m: float, half_span_m: flo
     k = 1
     while len(frames) < n and k * step_m <= half_span_m + 1e-9:
         for target in (k * step_m, -k * step_m):
-            j = int(view.window[int(np.argmin(np.abs(s - target)))])
-            if abs(s[np.searchsorted(view.window, j)] - target) <= 0.5 * step_m and j not in frames \
-                    and len(frames) < n:
-                frames.append(j)
+            r = int(np.argmin(np.abs(s - target)))
+            if len(frames) < n and abs(s[r] - target) <= 0.5 * step_m and int(view.window[r]) not in frames:
+                frames.append(int(view.window[r]))
         k += 1
     return np.asarray(frames, dtype=int)
