@@ -487,8 +487,9 @@ def _refuse_empty_map(out: Path, writer: MapWriter, places, allstats: dict, seco
     raise DataError(out, f"no place kept a scene signature (every candidate shape rejected: {rej}; "
                          f"{'/'.join(map(str, images))} images per place from {'/'.join(map(str, runs))} "
                          f"runs), so no map was written (build_summary.json says why per place). "
-                         f"Train with more runs of different appearance (three or more), or give each "
-                         f"run more frames per place with --frames-per-run N.")
+                         f"Train with more runs of different appearance, or give each run more frames per "
+                         f"place with --frames-per-run N (mining needs about {MIN_IMAGES} images per place: "
+                         f"two per partition of the clustering).")
 
 
 def _georef_observations(out: Path, places) -> dict:
