@@ -60,6 +60,8 @@ from .outputs import (FRAMES_COLUMNS, TIMING_KEYS, compute_metrics, map_relative
                       reference_path, write_outputs)
 from .pipeline import Localiser, Measurement, WeakLocaliser, make_method
 
+log = logging.getLogger(__name__)
+
 __all__ = ["default_config", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
            "localise", "FRAMES_COLUMNS", "TIMING_KEYS"]
 
@@ -465,11 +467,23 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
                         dict(sorted(rec.corrupt.items())), timings)
 
 
+def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
+    """Say before replaying when the route passes places too weak to localise (mapping.coverage)."""
+    from mapping.coverage import MIN_SIGNATURES, weak_places_on_route
+
+    weak = weak_places_on_route(store, run)
+    if weak:
+        log.warning("map %s: %d place(s) on this run's route have fewer than %d signatures and will rarely "
+                    "localise (expect dead reckoning and failures there): %s", store.root, len(weak),
+                    MIN_SIGNATURES, ", ".join(map(str, weak)))
+
+
 def localise(map_root, run_root, out, method: str = "signatures", every: int = 4, realtime: bool = False,
              speed: float = 1.0, config: dict | None = None, progress: bool = True, figure: bool = True) -> dict:
     """Open the map and the run, replay, write the outputs; returns ``metrics.json``'s content."""
     store = MapStore.open(map_root)
     run = read_run(run_root)
+    _warn_weak_places(store, run)
     cfg = merge_settings(default_config, config, "replay", open=("localiser", "method"))
     result = replay(store, run, method, every=every, realtime=realtime, speed=speed, config=config,
                     progress=progress)

@@ -3,7 +3,9 @@
 For each place (every 10 m along the reference run):
 
 1. *training images* -- the frame nearest the place from every training run (by INS position and
-   heading), the reference run's first;
+   heading), the reference run's first; with few runs, each run also gives neighbouring frames within
+   the place's segment (``frames_per_run``), and a place that still has fewer than ``min_images``
+   images gets photometrically augmented copies of them (:mod:`signatures.augment`);
 2. *mining* -- :func:`signatures.mining.mine_place` (iterative discriminative clustering over the
    fixed template of candidate shapes), with images of other places of the reference run as extra
    negatives;
@@ -32,29 +34,38 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from pathlib import Path
 
 import numpy as np
 
-from surveys.errors import CorruptImageError
+from surveys.errors import CorruptImageError, DataError
 from surveys.io import append_line
 from surveys.settings import merge_settings
 from surveys.geometry import invert
 from surveys.run import SurveyRun
+from signatures.augment import augment
 from signatures.mining import mine_place
 from signatures.bank import default_config as bank_default_config
 from signatures.hog import level_scale
 from mapping import georef as georef_mod
 from mapping import places as places_mod
+from mapping.coverage import MIN_SIGNATURES
 from mapping.pointmap import build_point_features
 from mapping.refine import Detections, REASONS, refine_landmarks
 from mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
 from surveys.io import atomic_write_bytes
 
-__all__ = ["default_config", "build_map", "build_place", "vet_images", "load_config"]
+__all__ = ["default_config", "build_map", "build_place", "mining_images", "vet_images", "load_config"]
 
 log = logging.getLogger(__name__)
+
+#: Images a place is mined from at least (see ``frames_per_run``, ``min_images``): two per partition of
+#: the clustering (McManus et al. 2015, §3.2; three partitions), as six runs give.
+MIN_IMAGES = 6
+#: Frames a run gives a place at most when ``frames_per_run`` is automatic.
+MAX_FRAMES_PER_RUN = 3
 
 default_config = {
     "places": {},                 # overrides of mapping.places.default_config
@@ -70,6 +81,14 @@ default_config = {
     # 15 % -> 14 %, 8 % more landmarks kept, +1 s per place)
     "detect": {"scale_search": 2},
     "georeference": {"method": "runs"},  # overrides of mapping.georef.default_config ("runs" | "reference")
+    # Mining images per place (mining_images).  Each run that sees the place gives ``frames_per_run``
+    # frames around it (None: ceil(min_images / runs), at most max_frames_per_run); a place still
+    # short of ``min_images`` gets augmented copies.  Six runs or more keep the paper's one frame per
+    # run, so such maps are unchanged.
+    "frames_per_run": None,
+    "min_images": MIN_IMAGES,
+    "max_frames_per_run": MAX_FRAMES_PER_RUN,
+    "augment_shift_px": 8.0,      # max left/right shift of an augmented copy (a small heading change)
 }
 
 
@@ -150,6 +169,55 @@ def _true_depths(run: SurveyRun, frame: int, image: np.ndarray, boxes: np.ndarra
     return out, spread
 
 
+def frames_per_run(cfg: dict, n_runs: int) -> int:
+    """Frames each run gives a place seen by ``n_runs`` runs (``cfg``: merged build options)."""
+    if cfg["frames_per_run"] is not None:
+        n = int(cfg["frames_per_run"])
+        if n < 1:
+            raise ValueError(f"frames_per_run must be >= 1, got {n}")
+        return n
+    return int(min(cfg["max_frames_per_run"], max(1, math.ceil(cfg["min_images"] / max(1, n_runs)))))
+
+
+def mining_images(place: places_mod.Place, views: list, images: list, config: dict | None = None):
+    """The images a place is mined from, and their alignment offsets.
+
+    ``images[k]`` is the training frame of ``views[k]`` (the reference run's first); these come first
+    and in that order, so with one frame per run and enough runs mining sees exactly the paper's
+    training set.  Then each run's neighbouring frames (:func:`mapping.places.neighbour_frames`, within
+    the place's segment), then -- while the place has fewer than ``min_images`` -- photometrically
+    augmented copies of the frames in turn (:func:`signatures.augment.augment`; seeded by the place, so
+    a build repeats), each offset by its known shift.
+
+    Returns
+    -------
+    images : list of ndarray (gray)
+    offsets : (n, 2) ndarray
+    counts : dict
+        ``frames_per_run``, ``frames`` (real frames), ``augmented`` (copies).
+    """
+    import cv2
+
+    cfg = _merge(config)
+    pcfg = {**places_mod.default_config, **cfg["places"]}
+    per_run = frames_per_run(cfg, len(views))
+    out = list(images)
+    for v in views:
+        for j in places_mod.neighbour_frames(v, per_run, pcfg["frame_step_m"], pcfg["spacing_m"] / 2)[1:]:
+            out.append(v.run.image(int(j), gray=True))
+    n_frames = len(out)
+    offsets = [[0.0, 0.0]] * n_frames
+    rng = np.random.default_rng([place.index, 19])
+    k = 0
+    while len(out) < int(cfg["min_images"]):
+        copy, shift = augment(out[k % n_frames], rng, float(cfg["augment_shift_px"]))
+        out.append(cv2.cvtColor(copy, cv2.COLOR_BGR2GRAY))
+        offsets.append([shift, 0.0])
+        k += 1
+    counts = {"frames_per_run": per_run, "frames": n_frames, "augmented": len(out) - n_frames}
+    return out, np.asarray(offsets, dtype=float), counts
+
+
 def build_place(place: places_mod.Place, views: list, negatives: list[np.ndarray], config: dict | None = None):
     """Mine and refine one place.
 
@@ -186,7 +254,9 @@ def _build_place(place, views, negatives, config):
     ref = views[0]
     camera, T_vc = ref.run.camera, ref.run.T_vehicle_camera
     images = [v.run.image(v.frame, gray=True) for v in views]
-    bank, mstats = mine_place(images, config=cfg["mining"], negatives=negatives, n_jobs=1, rng=place.index)
+    mined_from, offsets, image_counts = mining_images(place, views, images, cfg)
+    bank, mstats = mine_place(mined_from, offsets, config=cfg["mining"], negatives=negatives, n_jobs=1,
+                              rng=place.index)
 
     window = _subsample(ref.window, ref.frame, cfg["max_window_frames"], ref.T_frame_window[:, :3, 3])
     rows = np.searchsorted(ref.window, window)
@@ -260,7 +330,12 @@ def _build_place(place, views, negatives, config):
               "mined": int(n), "kept": int(len(keep)), "georef": georef_obs},
     )
     stats = {"place": place.index, "seconds": time.perf_counter() - t0, "mining": mstats.as_dict(),
-             "rejected": {"not_converged": int(mstats.rejected_not_converged), **counts},
+             "runs": len(views), "images": len(mined_from), **image_counts,
+             # why the candidate shapes that did not become signatures were dropped: mining (too few
+             # images to form partitions, texture, no convergence), then landmark refinement
+             "rejected": {"no_data": int(mstats.rejected_no_data),
+                          "textureless": int(mstats.rejected_textureless),
+                          "not_converged": int(mstats.rejected_not_converged), **counts},
              "depth_rel_errors": rel_err, "depth_truth_spread": truth_spread, "signatures": int(len(keep)),
              "georef_runs_ok": int(sum(bool(o["ok"]) for o in georef_obs))}
     return data, stats
@@ -344,6 +419,11 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     places = places_mod.define_places(reference, cfg["places"])
     if not places:
         raise ValueError(f"reference run {reference.name!r} is too short to define a place")
+    if len(train) == 1:
+        n = frames_per_run(cfg, 1)
+        log.warning(f"a map from one survey run ({reference.name}): each place is mined from up to {n} frames "
+                    f"around it and augmented copies of them (at least {int(cfg['min_images'])} images); it "
+                    f"has seen one appearance, so expect it to localise runs of similar appearance only")
     params = {"config": cfg, "reference": reference.name, "runs": names}
     if left_out:                 # only then: maps built from clean runs keep their bytes
         params["frames_left_out"] = left_out
@@ -398,6 +478,9 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     bar.close()
     if places_subset is not None and any(not writer.has_place(p.index) for p in places):
         return {"partial": True, "built": sorted(stats)}
+    allstats = _read_stats(out)
+    if all(allstats.get(p.index, {}).get("signatures", 0) == 0 for p in places):
+        _refuse_empty_map(out, writer, places, allstats, time.perf_counter() - t0)
 
     metas = [p.to_dict() for p in places]
     # Georeferencing from every training run (mapping.georef); the per-run observations are read back
@@ -418,7 +501,48 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     writer.finalise(metas)
     corrupt_files = [str(run.root / f) if run.root is not None else f
                      for run in train for f in left_out.get(run.name, [])]
-    return _write_summary(out, places, stats, time.perf_counter() - t0, corrupt_files)
+    summary = _write_summary(out, places, allstats, time.perf_counter() - t0, corrupt_files)
+    if summary["places_weak"]:
+        log.warning(_weak_message(summary, allstats))
+    return summary
+
+
+def _weak_message(summary: dict, allstats: dict) -> str:
+    weak = summary["places_weak"]
+    runs = sorted({st.get("runs", 0) for i, st in allstats.items() if i in weak})
+    return (f"{len(weak)} of {summary['places']} places have fewer than {MIN_SIGNATURES} signatures and will "
+            f"rarely localise: {_index_ranges(weak)} (seen by {'/'.join(map(str, runs))} runs; per-place "
+            f"counts and rejection reasons in build_summary.json 'per_place'). More training runs of "
+            f"different appearance, or more frames per run (--frames-per-run), give them more.")
+
+
+def _index_ranges(idx) -> str:
+    """``[0, 1, 2, 5, 7, 8]`` -> ``"0-2, 5, 7-8"``."""
+    idx = sorted(int(i) for i in idx)
+    parts, start = [], None
+    for k, i in enumerate(idx):
+        if start is None:
+            start = i
+        if k + 1 == len(idx) or idx[k + 1] != i + 1:
+            parts.append(f"{start}" if start == i else f"{start}-{i}")
+            start = None
+    return ", ".join(parts)
+
+
+def _refuse_empty_map(out: Path, writer: MapWriter, places, allstats: dict, seconds: float) -> None:
+    """No place kept a signature: such a map cannot localise, so none is written (the place files and the
+    journal go, so a re-run with other settings starts afresh); ``build_summary.json`` stays to say why."""
+    summary = _write_summary(out, places, allstats, seconds)
+    writer.discard()
+    rej = {k: v for k, v in summary["rejected"].items() if v}
+    images = sorted({st.get("images", 0) for st in allstats.values()})
+    runs = sorted({st.get("runs", 0) for st in allstats.values()})
+    raise DataError(out, f"no place kept a scene signature (every candidate shape rejected: {rej}; "
+                         f"{'/'.join(map(str, images))} images per place from {'/'.join(map(str, runs))} "
+                         f"runs), so no map was written (build_summary.json says why per place). "
+                         f"Train with more runs of different appearance, or give each run more frames per "
+                         f"place with --frames-per-run N (mining needs about {MIN_IMAGES} images per place: "
+                         f"two per partition of the clustering).")
 
 
 def _georef_observations(out: Path, places) -> dict:
@@ -436,9 +560,8 @@ def _append_stats(out: Path, st: dict) -> None:
     append_line(Path(out) / "build_stats.jsonl", json.dumps(st))
 
 
-def _write_summary(out: Path, places, stats: dict, seconds: float, corrupt_files=()) -> dict:
-    """``build_summary.json`` from every place's stats in ``build_stats.jsonl`` (this and earlier runs)."""
-    path = out / "build_summary.json"
+def _read_stats(out: Path) -> dict:
+    """Every place's stats in ``build_stats.jsonl`` (this and earlier runs; a later line wins)."""
     per_place_path = out / "build_stats.jsonl"
     allstats = {}
     for line in (per_place_path.read_text().splitlines() if per_place_path.exists() else []):
@@ -447,6 +570,13 @@ def _write_summary(out: Path, places, stats: dict, seconds: float, corrupt_files
         except json.JSONDecodeError:  # a torn last line of a killed build: that place was rebuilt
             continue
         allstats[st["place"]] = st
+    return allstats
+
+
+def _write_summary(out: Path, places, allstats: dict, seconds: float, corrupt_files=()) -> dict:
+    """``build_summary.json`` from every place's stats (:func:`_read_stats`)."""
+    path = out / "build_summary.json"
+    allstats = {p.index: allstats[p.index] for p in places if p.index in allstats}
     files = sorted((out / "places").glob("place_*.npz"))
     sizes = [f.stat().st_size for f in files]
     errs = [e for st in allstats.values() for e in st["depth_rel_errors"]]
@@ -475,6 +605,13 @@ def _write_summary(out: Path, places, stats: dict, seconds: float, corrupt_files
         # training frames left out because their image failed strict decoding (--skip-corrupt)
         "frames_corrupt": len(corrupt_files),
         "corrupt_frames": list(corrupt_files),
+        # places with fewer than MIN_SIGNATURES signatures: too few to localise under changed appearance
+        "places_weak": sorted(i for i, st in allstats.items() if st["signatures"] < MIN_SIGNATURES),
+        "min_signatures": MIN_SIGNATURES,
+        # per place: runs that see it, images mined (frames and augmented copies), signatures kept, and
+        # the candidate shapes rejected by reason
+        "per_place": [{k: st.get(k) for k in ("place", "runs", "images", "frames", "augmented", "signatures",
+                                              "rejected")} for _, st in sorted(allstats.items())],
         "seconds": seconds,
     }
     atomic_write_bytes(path, (json.dumps(summary, indent=2) + "\n").encode())
@@ -509,7 +646,6 @@ def load_config(text: str | None) -> dict | None:
     try:
         cfg = json.loads(src)
     except json.JSONDecodeError as exc:
-        from surveys.errors import DataError
         raise DataError(path if src is not text else None, f"--config is not valid JSON: {exc.msg}",
                         line=exc.lineno) from None
     if not isinstance(cfg, dict):

@@ -20,7 +20,8 @@ from surveys.settings import merge_settings
 from surveys.geometry import interpolate_poses, invert, yaw_of
 from surveys.run import SurveyRun
 
-__all__ = ["Place", "TrainingView", "define_places", "training_views", "default_config", "arc_length"]
+__all__ = ["Place", "TrainingView", "define_places", "training_views", "neighbour_frames", "default_config",
+           "arc_length"]
 
 default_config = {
     "spacing_m": 10.0,          # McManus et al. 2015, §4.1
@@ -28,6 +29,9 @@ default_config = {
     "max_position_error_m": 8.0,  # a run further than this from a place (INS) does not see it
     "max_heading_error_deg": 30.0,
     "window_step": 1,           # use every n-th frame of the window
+    # Mining frames of a run around its training frame (neighbour_frames): one step apart in distance
+    # travelled, alternately ahead and behind, all within the place's own segment (±spacing_m / 2).
+    "frame_step_m": 1.0,
 }
 
 
@@ -119,3 +123,36 @@ def training_views(place: Place, runs: list[SurveyRun], config: dict | None = No
         T_ref = interpolate_poses(run.odometry_times, run.odometry_poses, run.frame_times[i])
         views.append(TrainingView(run, i, win, invert(T_ref) @ odo, float(dist[i])))
     return views
+
+
+def neighbour_frames(view: TrainingView, n: int, step_m: float, half_span_m: float) -> np.ndarray:
+    """Up to ``n`` frames of one run for mining a place: the training frame and its neighbours.
+
+    Targets lie ``step_m`` apart in distance travelled -- 0, +step, -step, +2 step, ... -- within
+    ``half_span_m`` of the training frame (the place's own segment, so the frames show this place and
+    not the next one); each takes the window frame nearest to it in the run's odometry.  Neighbouring
+    frames give the clustering small viewpoint changes of one appearance, which is what it needs to
+    find a patch again when a map has few runs (the paper's many runs give it many appearances instead,
+    McManus et al. 2015, §3.2).  A target whose nearest frame is already taken (the vehicle stopped)
+    adds nothing, so a run may give fewer than ``n`` frames.
+
+    Returns
+    -------
+    ndarray of int
+        Frame indices, the training frame first.
+    """
+    n = int(n)
+    if n < 1:
+        raise ValueError(f"frames per run must be >= 1, got {n}")
+    pos = view.T_frame_window[:, :3, 3]
+    s = arc_length(pos)
+    s = s - s[int(np.searchsorted(view.window, view.frame))]
+    frames = [int(view.frame)]
+    k = 1
+    while len(frames) < n and k * step_m <= half_span_m + 1e-9:
+        for target in (k * step_m, -k * step_m):
+            r = int(np.argmin(np.abs(s - target)))
+            if len(frames) < n and abs(s[r] - target) <= 0.5 * step_m and int(view.window[r]) not in frames:
+                frames.append(int(view.window[r]))
+        k += 1
+    return np.asarray(frames, dtype=int)

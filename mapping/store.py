@@ -198,6 +198,11 @@ class MapWriter:
         lines = [_canonical({"header": self.header})] + [_canonical(r) for _, r in sorted(self._done.items())]
         atomic_write_bytes(journal, ("\n".join(lines) + "\n").encode())
 
+    def discard(self) -> None:
+        """Remove every place written so far and the journal: for a build that must leave no map behind."""
+        self._clear()
+        self._done.clear()
+
     # -- writing ------------------------------------------------------------------------------------------
     def has_place(self, index: int) -> bool:
         """True if place ``index`` is already written and its file matches its checksum."""

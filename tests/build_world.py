@@ -2,7 +2,8 @@
 
 The ``tiny`` preset (a 60 m open road, 320x240 images), three runs (sunny, overcast, night) at 4 Hz, and
 a build configuration cut down for speed -- places every 20 m (three places), a 12-shape candidate
-template mined in two partitions, 9-frame refinement windows, 100 ORB points per place -- but the same
+template mined in two partitions from one frame per run, 9-frame refinement windows, 100 ORB points per
+place -- but the same
 code path as a full build.  Runs and the reference map are made once per test session (under pytest's
 session temp folder) and reused by every module that asks for them.
 """
@@ -19,6 +20,9 @@ CONFIG = {
     "max_window_frames": 9,
     "mining": {"shapes": SHAPES, "n_partitions": 2},
     "points": {"kinds": ["orb"], "n_candidates": 500, "max_points": 100},
+    # the paper's one training frame per run (three images, enough for two partitions): what these tests
+    # check does not depend on how many frames a run gives; maps from few runs: tests/test_fewrun.py
+    "frames_per_run": 1, "min_images": 3,
 }
 
 

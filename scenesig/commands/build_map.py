@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 from ._types import positive_int
@@ -15,12 +16,32 @@ def register(groups):
     p.add_argument("--out", required=True, help="map folder, e.g. maps/NAME")
     p.add_argument("--jobs", type=positive_int, default=1, help="places built in parallel (joblib)")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://host:8786")
+    p.add_argument("--frames-per-run", type=positive_int, default=None, metavar="N",
+                   help="frames each run gives a place: its nearest frame and neighbours 1 m apart within the "
+                        "place's 10 m segment (default: enough for six images per place, at most 3 -- "
+                        "1 with six runs or more)")
     p.add_argument("--config", default=None,
                    help="build options (overrides of mapping.build.default_config) as JSON text or a .json file")
     p.add_argument("--skip-corrupt", action="store_true",
                    help="leave out frames whose image is truncated or corrupt (counted in build_summary.json) "
                         "instead of stopping")
     p.set_defaults(_run=run)
+
+
+def print_places(summary: dict, file=sys.stderr) -> None:
+    """Per place: runs, images mined (frames+augmented copies), signatures kept, rejected shapes by reason."""
+    from mapping.refine import REASONS
+
+    reasons = ["no_data", "textureless", "not_converged", *REASONS]
+    weak = set(summary.get("places_weak") or [])
+    print(f"{'place':>5s} {'runs':>4s} {'images':>7s} {'kept':>5s}       rejected: "
+          + " ".join(f"{r:>13s}" for r in reasons), file=file)
+    for p in summary.get("per_place") or []:
+        images = f"{p.get('frames') or 0}+{p.get('augmented') or 0}"
+        rej = p.get("rejected") or {}
+        print(f"{p['place']:5d} {p.get('runs') or 0:4d} {images:>7s} {p['signatures']:5d} "
+              f"{'weak' if p['place'] in weak else '    '}{'':>12s}"
+              + " ".join(f"{rej.get(r, 0):13d}" for r in reasons), file=file)
 
 
 def run(args) -> int:
@@ -30,7 +51,11 @@ def run(args) -> int:
     runs = [read_run(r) for r in args.runs]
     ref_path = Path(args.reference).resolve()
     reference = next((r for r in runs if r.root.resolve() == ref_path), None) or read_run(args.reference)
-    summary = build_map(runs, reference, args.out, jobs=args.jobs, scheduler=args.scheduler,
-                        config=load_config(args.config), skip_corrupt=args.skip_corrupt)
-    print(json.dumps(summary, indent=2))
+    config = load_config(args.config) or {}
+    if args.frames_per_run is not None:
+        config["frames_per_run"] = int(args.frames_per_run)
+    summary = build_map(runs, reference, args.out, jobs=args.jobs, scheduler=args.scheduler, config=config,
+                        skip_corrupt=args.skip_corrupt)
+    print_places(summary)
+    print(json.dumps({k: v for k, v in summary.items() if k != "per_place"}, indent=2))
     return 0
