@@ -30,11 +30,9 @@ def is_map(folder) -> bool:
 
 
 def _weak_place_problems(store: MapStore) -> list[Problem]:
-    """Weak places as warnings (hook: the rule lives in :mod:`mapping.coverage` where it exists)."""
-    try:
-        from mapping.coverage import MIN_SIGNATURES, weak_places
-    except ImportError:      # this scenesig has no weak-place rule
-        return []
+    """Weak places as warnings (the rule lives in :mod:`mapping.coverage`)."""
+    from mapping.coverage import MIN_SIGNATURES, weak_places
+
     return [Problem(str(store.root / store.places[i].file), None,
                     f"weak place {i}: {store.places[i].signatures} signatures (fewer than {MIN_SIGNATURES}): "
                     f"localisation there relies on odometry", "warning")
