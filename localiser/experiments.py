@@ -168,7 +168,7 @@ def signature_matches(bank: Bank, reference_xy: np.ndarray, image: np.ndarray, d
 
 
 def point_matches(points: dict, kind: str, image: np.ndarray, delta_px: float = 15.0, config: dict | None = None):
-    """ORB/SIFT matches (mutual NN + DAPC) of a live image to a place's keyframe features within δ.
+    """ORB/SIFT matches (the point localiser's matcher, without prior gating) of a live image to a place's keyframe features within δ.
 
     Returns
     -------
@@ -184,7 +184,8 @@ def point_matches(points: dict, kind: str, image: np.ndarray, delta_px: float = 
     live = extract(_image_for(image, False), kind, n_features=int(cfg["n_features"]), config=cfg["features"])
     if not len(live):
         return 0, np.zeros((0, 4)), 0
-    m = match_to_map(live, mapf, cfg["filter"], bool(cfg["mutual"]), float(cfg["ratio"]))
+    m = match_to_map(live, mapf, cfg["match"], float(cfg["ratio"]), image_size=(image.shape[1], image.shape[0]),
+                     gms=cfg["gms"])
     dist = np.linalg.norm(live.xy[m.train] - mapf.xy[m.query], axis=1)
     ok = dist < delta_px
     xy = live.xy[m.train[ok]].astype(float)

@@ -95,6 +95,7 @@ class ReplayResult:
     failures: int
     reset_times: list = field(default_factory=list)   # times of the oracle resets (odometry times)
     timings: dict = field(default_factory=dict)
+    method_config: dict = field(default_factory=dict)  # the method's settings (WeakLocaliser.method_config)
 
 
 def _oracle(run: SurveyRun):
@@ -424,12 +425,18 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     }
     return ReplayResult(run, method.name, "realtime" if realtime else "deterministic", None if realtime else every,
                         rec.times, rec.poses, rec.places, rec.detections, rec.inliers, rec.localised, resets,
-                        rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times), timings)
+                        rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times), timings,
+                        _json_safe(method.method_config()))
 
 
 # ------------------------------------------------------------------------------------------------
 # metrics and outputs
 # ------------------------------------------------------------------------------------------------
+def _json_safe(obj):
+    """Settings as plain JSON types (tuples and numpy values become lists and numbers)."""
+    return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+
+
 def reference_path(store: MapStore) -> ReferencePath:
     """The reference path: the map's places in order, closed if the route is a loop."""
     ids = sorted(store.places)
@@ -528,6 +535,7 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         "localisations": int(result.localised.sum()),
         "truth_source": source,
         "map": str(store.root),
+        "method_config": result.method_config,
     }
     for k in ("frames_dropped", "frames_detected"):
         if k in tm:

@@ -186,12 +186,12 @@ def test_dapc_keeps_mutual_matches_below_second_minus_mean_gap():
     # map a = 0, 10, 20, 11; live b = 1, 12, 25, 100 (distances are |a - b|)
     # a1's nearest is b1 (2), but b1's nearest is a3 (1): a1 is not a mutual match.
     mapf, live = _feats([0, 10, 20, 11]), _feats([1, 12, 25, 100])
-    m = match_to_map(live, mapf)
+    m = match_to_map(live, mapf, "dapc")
     # mutual pairs: a0-b0 (d1 1, d2 12), a2-b2 (5, 8), a3-b1 (1, 10): mean gap (11 + 3 + 9) / 3 = 23/3
     # keep d1 < d2 - 23/3:  a0: 1 < 4.33 yes;  a2: 5 < 0.33 no;  a3: 1 < 2.33 yes
     assert sorted(zip(m.query.tolist(), m.train.tolist())) == [(0, 0), (3, 1)]
     # Lowe's ratio would keep the ambiguous a2 (5 < 0.8 * 8): DAPC is stricter here
-    r = match_to_map(live, mapf, filter="ratio", ratio=0.8)
+    r = match_to_map(live, mapf, "ratio", ratio=0.8)
     assert sorted(r.query.tolist()) == [0, 2, 3]
 
 
@@ -204,7 +204,7 @@ def test_dapc_matches_an_independent_implementation():
     mapf.descriptors = mapd
     livef = _feats(np.zeros(200))
     livef.descriptors = live
-    m = match_to_map(livef, mapf)
+    m = match_to_map(livef, mapf, "dapc")
     D = np.linalg.norm(mapd[:, None, :].astype(float) - live[None].astype(float), axis=2)
     nn = D.argmin(axis=1)
     srt = np.sort(D, axis=1)
