@@ -74,7 +74,14 @@ def build_parser() -> argparse.ArgumentParser:
     lo = cmd("localise", "localiser.replay", "Localise a replayed traverse against a map.")
     lo.add_argument("map", help="map folder")
     lo.add_argument("run", help="survey run to replay")
-    lo.add_argument("--method", choices=["signatures", "orb", "sift"], default="signatures")
+    lo.add_argument("--method", choices=["signatures", "orb", "sift", "orb-all", "sift-all"], default="signatures")
+    lo.add_argument("--match", choices=["ratio", "dapc", "gms"], default=None,
+                    help="point features: mutual NN + ratio 0.8 (default), DAPC, or GMS")
+    lo.add_argument("--point-map", choices=["reference", "all"], default=None,
+                    help="point features: the reference run's keyframe (default for orb/sift) or one per "
+                         "training run (orb-all/sift-all)")
+    lo.add_argument("--no-prior-gating", action="store_true",
+                    help="match / search the whole image instead of around the odometry prior's predictions")
     lo.add_argument("--out", required=True, help="output folder")
     mode = lo.add_mutually_exclusive_group()
     mode.add_argument("--every", type=_positive_int, default=4, help="detector on every N-th frame (deterministic)")

@@ -61,7 +61,8 @@ default_config = {
 }
 
 #: Method colours, as in the paper where it has them (signatures red, point features green, INS blue).
-METHOD_COLORS = {"signatures": "tab:red", "orb": "tab:green", "sift": "tab:olive", "ins": "tab:blue",
+METHOD_COLORS = {"signatures": "tab:red", "orb": "tab:green", "sift": "tab:olive", "orb-all": "tab:cyan",
+                 "sift-all": "tab:brown", "ins": "tab:blue",
                  "truth": "k"}
 FRAMES_REQUIRED = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
                    "distance_since_localisation")

@@ -658,10 +658,39 @@ def localise(map_root, run_root, out, method: str = "signatures", every: int = 4
     return write_outputs(result, store, out, cfg["max_path_distance_m"], figure=figure)
 
 
+def method_options(method: str, match: str | None = None, point_map: str | None = None,
+                   prior_gating: bool = True) -> dict:
+    """The ``method`` config of :func:`replay` from the command line's options (an error for options
+    the method does not have)."""
+    opts = {}
+    if not prior_gating:
+        opts["prior_gating"] = False
+    if method == "signatures":
+        given = [f"--{k}" for k, v in (("match", match), ("point-map", point_map)) if v is not None]
+        if given:
+            raise ValueError(f"{' and '.join(given)} apply to the point-feature methods, not to signatures")
+        return opts
+    if match is not None:
+        opts["match"] = match
+    if point_map is not None:
+        if "-" in method and point_map != method.split("-", 1)[1]:
+            raise ValueError(f"--point-map {point_map} contradicts --method {method}")
+        opts["point_map"] = point_map
+    return opts
+
+
 def run_from_args(args) -> int:
-    """``scenesig localise MAP RUN [--method M] --out DIR [--every N | --realtime [--speed X]]``."""
+    """``scenesig localise MAP RUN [--method M] [--match ratio|dapc|gms] [--point-map reference|all]
+    [--no-prior-gating] --out DIR [--every N | --realtime [--speed X]]``."""
+    try:
+        opts = method_options(args.method, getattr(args, "match", None), getattr(args, "point_map", None),
+                              not getattr(args, "no_prior_gating", False))
+    except ValueError as exc:
+        print(f"scenesig localise: error: {exc}", file=sys.stderr)
+        return 2
     metrics = localise(args.map, args.run, args.out, method=args.method, every=getattr(args, "every", 4) or 4,
-                       realtime=bool(getattr(args, "realtime", False)), speed=float(getattr(args, "speed", 1.0) or 1.0))
+                       realtime=bool(getattr(args, "realtime", False)), speed=float(getattr(args, "speed", 1.0) or 1.0),
+                       config={"method": opts} if opts else None)
     keys = ("method", "run", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
             "blind_fraction_over_20m", "realtime_factor")
     print(json.dumps({k: metrics[k] for k in keys}, indent=1))
@@ -673,6 +702,9 @@ def main(argv=None) -> int:
     ap.add_argument("map", help="map folder")
     ap.add_argument("run", help="survey run to replay")
     ap.add_argument("--method", default="signatures")
+    ap.add_argument("--match", choices=["ratio", "dapc", "gms"], default=None)
+    ap.add_argument("--point-map", choices=["reference", "all"], default=None)
+    ap.add_argument("--no-prior-gating", action="store_true")
     ap.add_argument("--out", required=True)
     mode = ap.add_mutually_exclusive_group()
     mode.add_argument("--every", type=int, default=4, help="detector on every N-th frame (deterministic)")
