@@ -55,7 +55,8 @@ from signatures.pointfeatures import PointFeatures, extract, match
 from signatures.pointfeatures import default_config as features_default
 from mapping.geometry import camera_poses, ideal_camera, ideal_pixels, reproject_jacobian
 
-__all__ = ["default_config", "build_point_features", "build_point_features_all", "point_keyframes",
+__all__ = ["default_config", "build_point_features", "build_point_features_all", "combine_keyframe_maps",
+           "point_keyframes",
            "point_map_covariances", "POINT_MAPS", "triangulate_keyframe", "triangulate_tracks",
            "point_covariances", "point_features", "select_frames", "keypoint_sigma", "add_to_map", "KINDS",
            "TriangulationStats"]
@@ -543,8 +544,18 @@ def build_point_features_all(views, T_place_views, config: dict | None = None, r
             build_point_features(view, view.run.camera, view.run.T_vehicle_camera, cfg)
         parts.append(pts)
         poses.append(np.asarray(T, dtype=float))
+    return combine_keyframe_maps(parts, poses, cfg["kinds"])
+
+
+def combine_keyframe_maps(parts: list, T_place_keyframes: list, kinds=KINDS) -> dict:
+    """One ``all`` point map from keyframe point maps (each in its own keyframe's vehicle frame).
+
+    ``parts[j]`` is a :func:`build_point_features` output and ``T_place_keyframes[j]`` (4,4) that
+    keyframe's vehicle pose in the place frame; see :func:`build_point_features_all` for the keys.
+    """
+    poses = [np.asarray(T, dtype=float) for T in T_place_keyframes]
     out = {"all_T_place_keyframe": np.asarray(poses, np.float32).reshape(-1, 4, 4)}
-    for kind in cfg["kinds"]:
+    for kind in kinds:
         for name in ("kp", "desc", "xyz", "sigma", "keyframe"):
             arrays = []
             for j, (pts, T) in enumerate(zip(parts, poses)):

@@ -31,3 +31,16 @@ def test_prepared_frame_gives_the_same_observation_and_counts_its_time(point_sto
     np.testing.assert_array_equal(ma.constraint.T_world_vehicle, mb.constraint.T_world_vehicle)
     with pytest.raises(ValueError, match="camera"):
         method.prepare(live[:100])
+
+
+def test_command_line_method_options():
+    from localiser.replay import method_options
+
+    assert method_options("orb") == {}
+    assert method_options("sift", match="gms", point_map="all", prior_gating=False) == \
+        {"match": "gms", "point_map": "all", "prior_gating": False}
+    assert method_options("signatures", prior_gating=False) == {"prior_gating": False}
+    with pytest.raises(ValueError, match="--match"):
+        method_options("signatures", match="dapc")
+    with pytest.raises(ValueError, match="contradicts"):
+        method_options("orb-all", point_map="reference")
