@@ -52,7 +52,7 @@ from .solver import default_config as solver_default
 from .solver import default_pnp_config, solve_pnp_prior
 
 __all__ = ["default_config", "MATCHERS", "PointObservation", "LiveFrame", "PointLocaliser", "keypoint_sigma",
-           "match_to_map", "method_name"]
+           "match_to_map", "method_name", "window_mask"]
 
 MATCHERS = ("ratio", "dapc", "gms")
 
@@ -178,6 +178,35 @@ class _MapPlace:
     n_keyframes: int = 1
 
 
+def window_mask(windows: np.ndarray, searchable: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(n_windows, n_points) bool: point j lies in window i (``x_min, y_min, x_max, y_max``).
+
+    A window of NaN (too wide) admits every point; an unsearchable one none.  Points are sorted by
+    x once, so each window only tests the points in its column range.
+    """
+    n, m = len(windows), len(xy)
+    mask = np.zeros((n, m), bool)
+    wide = np.isnan(windows).any(axis=1)
+    mask[wide & searchable] = True
+    rows = np.flatnonzero(~wide & searchable)
+    if not len(rows) or not m:
+        return mask
+    order = np.argsort(xy[:, 0], kind="stable")
+    xs = xy[order, 0].astype(float)
+    lo = np.searchsorted(xs, windows[rows, 0], side="left")
+    hi = np.searchsorted(xs, windows[rows, 2], side="right")
+    count = np.maximum(hi - lo, 0)
+    if not count.sum():
+        return mask
+    r = np.repeat(rows, count)
+    start = np.repeat(lo - np.concatenate([[0], np.cumsum(count)[:-1]]), count)
+    cols = order[np.arange(int(count.sum())) + start]
+    y = xy[cols, 1].astype(float)
+    ok = (y >= windows[r, 1]) & (y <= windows[r, 3])
+    mask[r[ok], cols[ok]] = True
+    return mask
+
+
 def method_name(kind: str, point_map: str = "reference") -> str:
     """``orb``, ``sift`` (reference point map) or ``orb-all``, ``sift-all``."""
     return kind if point_map == "reference" else f"{kind}-{point_map}"
@@ -296,14 +325,7 @@ class PointLocaliser(WeakLocaliser):
                                     self.T_vehicle_camera, Q,
                                     {"window_sigmas": cfg["window_sigmas"], "min_window_radius_px": cfg["min_radius_px"],
                                      "max_window_fraction": cfg["max_window_fraction"]})
-        x, y = live.xy[:, 0].astype(float), live.xy[:, 1].astype(float)
-        with np.errstate(invalid="ignore"):
-            inside = ((x[None] >= win[:, :1]) & (x[None] <= win[:, 2:3])
-                      & (y[None] >= win[:, 1:2]) & (y[None] <= win[:, 3:4]))
-        wide = np.isnan(win).any(axis=1)          # window too wide: the point is not gated
-        inside[wide] = True
-        inside[~ok] = False                       # behind the camera or off the image: cannot be seen
-        return inside
+        return window_mask(win, ok, live.xy)
 
     def detect(self, image, place: int, prior: MotionPrior | None = None) -> PointObservation:
         """Match the live features (an image, or its :meth:`prepare` result) to the place's map points.
