@@ -4,7 +4,7 @@
 prints JSON: per estimator (:data:`localiser.absolute_pose.ESTIMATORS`) the median and 95th
 percentile milliseconds per call, the median translation (m) and rotation (deg) errors against the
 true pose, the share of problems solved (translation error < 0.5 m and rotation < 1 deg), and the
-median RANSAC iterations.  Problems come from :func:`localiser.solver.synthetic_problem` (landmarks
+median RANSAC iterations.  Problems come from :func:`localiser.synthetic.synthetic_problem` (landmarks
 8-60 m ahead, 1-px keypoint noise, 5-cm landmark noise, outliers uniform over the image).
 """
 from __future__ import annotations
@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from localiser.absolute_pose import ESTIMATORS, estimate
-from localiser.solver import pose_log, synthetic_problem
+from localiser.solver import pose_log
+from localiser.synthetic import synthetic_problem
 from surveys.geometry import invert
 
 

@@ -1,4 +1,4 @@
-"""Point-feature weak localisers (ORB, SIFT): the baselines of McManus et al. 2015 §4, on the same pipeline.
+"""Point-feature weak localisers (ORB, SIFT): the baselines of McManus et al. 2015, §4, on the same pipeline.
 
 ``scenesig localise MAP RUN --method orb|sift|orb-all|sift-all`` runs this instead of the scene
 signatures; replay, the pose graph, SE(2) snapping, the failure rule (20 m blind -> oracle reset),
@@ -44,6 +44,7 @@ import numpy as np
 from mapping.pointmap import POINT_MAPS, keypoint_sigma, point_features, point_keyframes, point_map_covariances
 from mapping.store import MapStore
 from signatures.pointfeatures import PointFeatures, extract, match
+from surveys.settings import merge_settings
 from surveys.geometry import Camera
 
 from .detector import search_windows
@@ -81,11 +82,7 @@ default_config = {
 
 
 def _merge(config: dict | None) -> dict:
-    cfg = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
-    for k, v in (config or {}).items():
-        if k not in cfg:
-            raise ValueError(f"unknown point-feature method option {k!r}; known: {sorted(cfg)}")
-        cfg[k] = {**cfg[k], **v} if isinstance(cfg[k], dict) else v
+    cfg = merge_settings(default_config, config, "point-feature method", open=("features", "solver", "pnp", "gms"))
     if cfg["match"] not in MATCHERS:
         raise ValueError(f"match must be one of {MATCHERS}, got {cfg['match']!r}")
     if cfg["point_map"] not in POINT_MAPS:
