@@ -111,7 +111,8 @@ def match_to_map(live: PointFeatures, mapf: PointFeatures, matcher: str = "ratio
     if matcher == "ratio":
         return match(mapf, live, filter="ratio", ratio=ratio, mutual=True, mask=mask)
     if matcher == "dapc":
-        # seed 002's order: bidirectional (mutual) matching first, then the dynamic distance test
+        # the M2Det scene-matching paper's order (§3.4): bidirectional (mutual) matching first, then the
+        # dynamic distance test
         return match(mapf, live, filter="dapc", mutual=True, dapc_over="mutual", mask=mask)
     if matcher == "gms":
         size = {} if image_size is None else {"image_size_a": tuple(image_size), "image_size_b": tuple(image_size)}
