@@ -34,6 +34,10 @@ Everything is in the place frame (the vehicle frame of the keyframe), like the s
     triangulation's information matrix with ``pixel_sigma`` per keypoint.  :func:`point_covariances`
     turns it back into (N,3,3) covariances.
 
+The ``all`` point map (:func:`build_point_features_all`) holds the same per keyframe for a keyframe of
+every training run at the place, moved into the place frame: ``{kind}_all_kp``, ``_desc``, ``_xyz``,
+``_sigma``, ``_keyframe`` (which keyframe each point belongs to) and ``all_T_place_keyframe`` (K,4,4).
+
 :func:`add_to_map` adds the point features to an existing map built without them (every place file is
 rewritten atomically with its new checksum; the banks are untouched).
 
