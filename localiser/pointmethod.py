@@ -321,7 +321,8 @@ class PointLocaliser(WeakLocaliser):
         Q = np.eye(2) * float(cfg["pixel_sigma"]) ** 2
         win, ok, _ = search_windows(mp.xyz, mp.cov, prior.T_place_vehicle, prior.covariance, self.camera,
                                     self.T_vehicle_camera, Q,
-                                    {"window_sigmas": cfg["window_sigmas"], "min_window_radius_px": cfg["min_radius_px"],
+                                    {"window_sigmas": cfg["window_sigmas"],
+                                     "min_window_radius_px": cfg["min_radius_px"],
                                      "max_window_fraction": cfg["max_window_fraction"]})
         return window_mask(win, ok, live.xy)
 

@@ -353,8 +353,8 @@ def gms_filter(xy_a: np.ndarray, xy_b: np.ndarray, size_a, size_b, grid="auto",
     A true match moves with its neighbours, so the 3x3 block of grid cells around it in image a
     sends many matches to the corresponding block around its cell in image b; a false one has
     little such support (Bian et al. 2017; as Fan et al., "PSiamRML: Target Recognition and Matching
-    Integrated Localization Algorithm Based on Pseudo-Siamese Network", §4.2, eqs. 3-7, use it).  Per cell of a, its matches' most frequent
-    destination cell is the cell pair's motion; a match on that motion is kept when the support
+    Integrated Localization Algorithm Based on Pseudo-Siamese Network", §4.2, eqs. 3-7, use it).
+    Per cell of a, its matches' most frequent destination cell is the cell pair's motion; a match on that motion is kept when the support
     ``s`` (matches from the 9 neighbouring cells to the 9 cells around the destination, the same
     relative neighbour on each side) exceeds ``tau = alpha * sqrt(n / 9)``, ``n`` the matches
     leaving the 9 cells of a.  As in the authors' code the grid is tried at four half-cell shifts
