@@ -61,7 +61,9 @@ default_config = {
 
 #: Point-feature settings per ``--baseline-preset`` (overrides of pointfeatures.default_config).
 BASELINE_PRESETS = {
-    "grief": {},
+    # GRIEF's protocol finds 1600 features per image; OpenCV's default SIFT contrast threshold
+    # (0.04) finds fewer on these low-contrast park images, so it is switched off
+    "grief": {"sift": {"contrastThreshold": 0.0}},
     "plain": {"dedupe": False,
               "vote": {"voting": "fixed", "estimate": "centre", "origin": "-width"}},
 }
@@ -209,6 +211,7 @@ def run_point_features(dataset: GriefDataset, pairs: list[GriefPair], kind: str 
         "ms_per_image_extraction": 1e3 * t_extract / max(n_images, 1),
         "ms_per_pair_matching": 1e3 * t_match / max(len(pairs), 1),
         "threads": n_jobs,
+        "config": pf._merge({**cfg, "n_features": n_features}),
         "error_rate_by_voting_mean_estimate": variants,
     }
     return MethodResult(kind, estimates, seconds, extra, detail)
@@ -249,6 +252,11 @@ def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 
         extra["mean_bank_size"] = float(np.mean(sizes))
         extra["mean_mining_seconds"] = float(np.mean([s.get("seconds", 0.0) for s in stats]))
     cfg = est.config
+    # the full resolved settings (the same for every folder) and what the training-data rule made of
+    # them per bank
+    extra["config"] = dict(cfg)
+    if stats:
+        extra["calibrated_banks"] = int(sum(bool(s.get("calibrated")) for s in stats))
     extra["training"] = _training_description(dataset, cfg)
     extra["jobs"] = n_jobs
     return MethodResult("signatures", estimates, time.perf_counter() - t0, extra, detail)

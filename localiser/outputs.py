@@ -136,6 +136,7 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         # frames whose image failed strict decoding (truncated or corrupt): skipped, odometry went on
         "frames_corrupt": len(result.corrupt),
         "corrupt_frames": [run.frame_files[i] for i in result.corrupt] if run.frame_files else [],
+        "method_config": result.method_config,
     }
     for k in ("frames_dropped", "frames_detected", "odometry_queue_max", "odometry_coalesced", "lag_max_s"):
         if k in tm:

@@ -155,6 +155,10 @@ class WeakLocaliser:
     name = "weak"
     color = False
 
+    def method_config(self) -> dict:
+        """The settings that produce this method's results (``metrics.json``'s ``method_config``)."""
+        return {"method": self.name}
+
     def prefetch(self, place: int | None) -> None:
         """Prepare a place that is coming up (e.g. decode its bank in the background)."""
 
@@ -195,14 +199,17 @@ class SignatureLocaliser(WeakLocaliser):
     ----------
     store : the map.
     camera, T_vehicle_camera : the live camera.
-    config : ``{"detector": {...}, "solver": {...}}`` overrides of
-        :data:`localiser.detector.default_config` and :data:`localiser.solver.default_config`.
+    config : ``{"detector": {...}, "solver": {...}, "prior_gating": bool}``: overrides of
+        :data:`localiser.detector.default_config` and :data:`localiser.solver.default_config`;
+        ``prior_gating`` False searches the whole image on every frame instead of the windows
+        around the projections the motion prior predicts.
     """
 
     name = "signatures"
 
     def __init__(self, store: MapStore, camera: Camera, T_vehicle_camera: np.ndarray, config: dict | None = None):
-        cfg = _merge(config, {"detector": {}, "solver": {}}, "signature method")
+        cfg = _merge(config, {"detector": {}, "solver": {}, "prior_gating": True}, "signature method")
+        self.prior_gating = bool(cfg["prior_gating"])
         self.store = store
         self.camera = camera
         self.T_vehicle_camera = np.asarray(T_vehicle_camera, dtype=float)
@@ -219,8 +226,16 @@ class SignatureLocaliser(WeakLocaliser):
     def prefetch(self, place):
         self.detector.prefetch(place)
 
+    def method_config(self) -> dict:
+        return {"method": self.name, "family": "scene signatures (McManus et al. 2015)",
+                "map": "one classifier bank per place, mined from every training run",
+                "prior_gating": self.prior_gating, "detector": dict(self.detector.config),
+                "estimator": "robust Levenberg-Marquardt with the motion prior (eq. 10), Huber",
+                "solver": dict(self.solver_config)}
+
     def detect(self, image, place, prior: MotionPrior) -> Observation:
-        return self.detector.detect(image, place, prior.T_place_vehicle, prior.covariance, whole_image=prior.lost)
+        return self.detector.detect(image, place, prior.T_place_vehicle, prior.covariance,
+                                    whole_image=prior.lost or not self.prior_gating)
 
     def solve(self, obs: Observation, place, prior: MotionPrior) -> Measurement:
         n = len(obs)
@@ -239,7 +254,7 @@ class SignatureLocaliser(WeakLocaliser):
 
 _METHODS: dict[str, Callable] = {"signatures": SignatureLocaliser}
 # Methods provided by other modules, imported on first use (they call register_method).
-_LAZY = {"orb": "localiser.pointmethod", "sift": "localiser.pointmethod"}
+_LAZY = {name: "localiser.pointmethod" for name in ("orb", "sift", "orb-all", "sift-all")}
 
 
 def register_method(name: str, factory: Callable) -> None:

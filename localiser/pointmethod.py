@@ -1,22 +1,32 @@
 """Point-feature weak localisers (ORB, SIFT): the baselines of McManus et al. 2015, §4, on the same pipeline.
 
-``scenesig localise MAP RUN --method orb|sift`` runs this instead of the scene signatures; replay, the
-pose graph, SE(2) snapping, the failure rule (20 m blind -> oracle reset), the outputs and the metrics are
-the shared code of :mod:`localiser.pipeline` / :mod:`localiser.replay`.
+``scenesig localise MAP RUN --method orb|sift|orb-all|sift-all`` runs this instead of the scene
+signatures; replay, the pose graph, SE(2) snapping, the failure rule (20 m blind -> oracle reset),
+the outputs and the metrics are the shared code of :mod:`localiser.pipeline` / :mod:`localiser.replay`.
 
-Per frame, for the place the localiser chose:
+Set up as hloc users run point features.  Per frame, for the place the localiser chose:
 
-* **detect** -- the live image's features (upright ORB or SIFT, the strongest ``n_features``;
-  :func:`signatures.pointfeatures.extract`), matched to the place's keyframe features
-  (:mod:`mapping.pointmap`: those with a triangulated 3D point) by *mutual nearest neighbour* and then
-  the *DAPC* adaptive test of "Multi-Modal Scene Matching Location Algorithm Based on M2Det" (§3.4,
-  eqs. 6-7): keep a mutual match when its best distance is below
-  its second-best distance minus the mean gap (second - best) over the mutual matches.  No ratio to tune:
-  the threshold adapts to how separable this image pair's descriptors are -- which is exactly what
-  changes between a sunny map and a night or fog live image.
-* **solve** -- PnP with RANSAC (EPnP minimal sets) on the 2D-3D correspondences, then the same robust
-  Levenberg-Marquardt with the motion prior, gating and checks as the signatures' eq. 10 solver
-  (:func:`localiser.solver.solve_pnp_prior`); a localisation constraint with covariance, or none.
+* **features** -- the live image's 2000 strongest upright ORB or SIFT features
+  (:func:`signatures.pointfeatures.extract`).
+* **point map** -- ``reference`` (methods ``orb``, ``sift``): the reference run's keyframe with its
+  triangulated 3D points, the paper's baseline; ``all`` (``orb-all``, ``sift-all``): a keyframe from
+  every training run at the place, all in the place frame (:func:`mapping.pointmap.build_point_features_all`);
+  the live image is matched to each and the keyframe with the most matches is used (retrieval by
+  match count).
+* **prior-guided matching** (default; ``prior_gating``) -- a map point may only match live
+  keypoints inside the window around its projection predicted from the odometry prior, ``±3σ`` of
+  ``J P_x Jᵀ + G P_l Gᵀ + σ_px² I`` (at least ``min_radius_px``), exactly the signature detector's
+  search windows (:func:`localiser.detector.search_windows`); where the localiser is lost, the whole
+  image.  Nearest neighbours and ratios are taken among the allowed pairs.
+* **matcher** (``match``) -- ``ratio`` (default): mutual nearest neighbours and Lowe's ratio test
+  (0.8); ``dapc``: mutual nearest neighbours and the DAPC adaptive-distance test of Zhang et al.
+  (CMC 2023, eqs. 6-7); ``gms``: nearest neighbours filtered by grid-based motion statistics
+  (Bian et al., CVPR 2017).
+* **solve** -- robust absolute pose (:mod:`localiser.absolute_pose`: LO-RANSAC, iterations driven
+  by a 0.9999 confidence, non-linear refinement), then the same robust Levenberg-Marquardt with the
+  motion prior, gating and checks as the signatures' eq. 10 solver
+  (:func:`localiser.solver.solve_pnp_prior`); accepted with at least 12 inliers (an absolute count,
+  not a share of the putative matches).
 
 Keypoint noise grows with the keypoint's scale (``pixel_sigma`` at the finest octave); the 3D points'
 map uncertainty (``{kind}_sigma``, across / along the keyframe ray) enters the solver as landmark
@@ -31,40 +41,52 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapping.pointmap import keypoint_sigma, point_covariances, point_features
+from mapping.pointmap import POINT_MAPS, keypoint_sigma, point_features, point_keyframes, point_map_covariances
 from mapping.store import MapStore
 from signatures.pointfeatures import PointFeatures, extract, match
 from surveys.settings import merge_settings
 from surveys.geometry import Camera
 
+from .detector import search_windows
 from .pipeline import Measurement, MotionPrior, WeakLocaliser, register_method
 from .solver import default_config as solver_default
 from .solver import default_pnp_config, solve_pnp_prior
 
-__all__ = ["default_config", "PointObservation", "LiveFrame", "PointLocaliser", "keypoint_sigma", "match_to_map"]
+__all__ = ["default_config", "MATCHERS", "PointObservation", "LiveFrame", "PointLocaliser", "keypoint_sigma",
+           "match_to_map", "method_name", "window_mask"]
+
+MATCHERS = ("ratio", "dapc", "gms")
 
 default_config = {
-    "n_features": 1000,          # live features per frame (strongest by detector response)
+    "n_features": 2000,          # live features per frame (strongest by detector response)
     "features": {},              # overrides of signatures.pointfeatures.default_config (upright, orb, sift)
-    "mutual": True,              # mutual nearest neighbours ...
-    "filter": "dapc",            # ... then DAPC (M2Det scene-matching paper, §3.4); "ratio" or "none" for comparisons
-    "ratio": 0.8,                # only for filter="ratio"
-    "min_matches": 6,            # fewer matches: no solve ("too_few_matches")
+    "match": "ratio",            # "ratio": mutual NN + Lowe; "dapc" (mutual NN + DAPC); "gms"
+    "ratio": 0.8,                # Lowe's ratio (match="ratio")
+    "gms": {},                   # overrides of signatures.pointfeatures.gms_default_config
+    "point_map": "reference",    # "reference" (one keyframe per place) or "all" (one per training run)
+    "prior_gating": True,        # matches only inside the windows the odometry prior predicts
+    "window_sigmas": 3.0,        # gate half-size in σ of the predicted projection ...
+    "min_radius_px": 20.0,       # ... but never smaller (map points' own error, keypoint scale)
+    "max_window_fraction": 0.5,  # a window wider than this share of the image: not gated
+    "min_matches": 12,           # fewer matches: no solve ("too_few_matches")
     "pixel_sigma": 1.0,          # keypoint std. dev. (px) at the finest octave
     "use_point_covariance": True,
     "cache": 4,                  # decoded places kept
     # A pose from a handful of point matches is where wrong localisations come from: after a reset the
-    # prior is loose (metres), and 5-10 wrong matches that happen to agree pass every gate.  PnP-based
-    # localisers ask for many more inliers than the signatures' 4 (ORB-SLAM's relocalisation: 50).
-    "solver": {"min_inliers": 12},   # overrides of localiser.solver.default_config
-    "pnp": {},                   # overrides of localiser.solver.default_pnp_config
+    # prior is loose (metres), and 5-10 wrong matches that happen to agree pass every gate.  The gate is
+    # an absolute inlier count (as hloc / COLMAP register an image), not a share of the putative
+    # matches, which across a change of appearance are mostly wrong.
+    "solver": {"min_inliers": 12, "min_inlier_fraction": 0.0},   # overrides of localiser.solver.default_config
+    "pnp": {},                   # overrides of localiser.solver.default_pnp_config (robust absolute pose)
 }
 
 
 def _merge(config: dict | None) -> dict:
-    cfg = merge_settings(default_config, config, "point-feature method", open=("features", "solver", "pnp"))
-    if cfg["filter"] not in ("dapc", "ratio", "none"):
-        raise ValueError(f"filter must be 'dapc', 'ratio' or 'none', got {cfg['filter']!r}")
+    cfg = merge_settings(default_config, config, "point-feature method", open=("features", "solver", "pnp", "gms"))
+    if cfg["match"] not in MATCHERS:
+        raise ValueError(f"match must be one of {MATCHERS}, got {cfg['match']!r}")
+    if cfg["point_map"] not in POINT_MAPS:
+        raise ValueError(f"point_map must be one of {POINT_MAPS}, got {cfg['point_map']!r}")
     unknown = set(cfg["solver"]) - set(solver_default)
     if unknown:
         raise ValueError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(solver_default)}")
@@ -74,18 +96,28 @@ def _merge(config: dict | None) -> dict:
     return cfg
 
 
-def match_to_map(live: PointFeatures, mapf: PointFeatures, filter: str = "dapc", mutual: bool = True,
-                 ratio: float = 0.8):
-    """Matches map -> live: mutual nearest neighbours, then DAPC over the mutual pairs (the order of the M2Det
-    scene-matching paper, §3.4).
+def match_to_map(live: PointFeatures, mapf: PointFeatures, matcher: str = "ratio", ratio: float = 0.8,
+                 mask: np.ndarray | None = None, image_size=None, gms: dict | None = None):
+    """Matches map -> live with one of :data:`MATCHERS` (module docstring).
+
+    ``mask`` (n_map, n_live): pairs allowed (prior gating); ``image_size`` (width, height) of both
+    images, for GMS's grid.
 
     Returns
     -------
     :class:`signatures.pointfeatures.Matches` with ``query`` indexing the map features and ``train``
     the live ones.
     """
-    return match(mapf, live, filter=filter, ratio=ratio, mutual=mutual,
-                 dapc_over="mutual" if (mutual and filter == "dapc") else "all")
+    if matcher == "ratio":
+        return match(mapf, live, filter="ratio", ratio=ratio, mutual=True, mask=mask)
+    if matcher == "dapc":
+        # the M2Det scene-matching paper's order (§3.4): bidirectional (mutual) matching first, then the
+        # dynamic distance test
+        return match(mapf, live, filter="dapc", mutual=True, dapc_over="mutual", mask=mask)
+    if matcher == "gms":
+        size = {} if image_size is None else {"image_size_a": tuple(image_size), "image_size_b": tuple(image_size)}
+        return match(mapf, live, filter="gms", mutual=False, mask=mask, gms={**(gms or {}), **size})
+    raise ValueError(f"match must be one of {MATCHERS}, got {matcher!r}")
 
 
 @dataclass
@@ -100,6 +132,8 @@ class PointObservation:
     map_index : (m,) index of the map point.
     n_live, n_map : features in the live image and the place's map.
     ms : detection + matching time (ms).
+    extra : ``keyframe`` (the keyframe matched, for the ``all`` point map), ``gated`` (prior gating
+        applied).
     """
 
     place: int
@@ -135,13 +169,49 @@ class LiveFrame:
 
 @dataclass
 class _MapPlace:
-    features: PointFeatures
+    features: PointFeatures | None
     xyz: np.ndarray
     cov: np.ndarray | None
+    keyframe: np.ndarray          # (N,) keyframe of each point (all 0 for the reference map)
+    n_keyframes: int = 1
+
+
+def window_mask(windows: np.ndarray, searchable: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(n_windows, n_points) bool: point j lies in window i (``x_min, y_min, x_max, y_max``).
+
+    A window of NaN (too wide) admits every point; an unsearchable one none.  Points are sorted by
+    x once, so each window only tests the points in its column range.
+    """
+    n, m = len(windows), len(xy)
+    mask = np.zeros((n, m), bool)
+    wide = np.isnan(windows).any(axis=1)
+    mask[wide & searchable] = True
+    rows = np.flatnonzero(~wide & searchable)
+    if not len(rows) or not m:
+        return mask
+    order = np.argsort(xy[:, 0], kind="stable")
+    xs = xy[order, 0].astype(float)
+    lo = np.searchsorted(xs, windows[rows, 0], side="left")
+    hi = np.searchsorted(xs, windows[rows, 2], side="right")
+    count = np.maximum(hi - lo, 0)
+    if not count.sum():
+        return mask
+    r = np.repeat(rows, count)
+    start = np.repeat(lo - np.concatenate([[0], np.cumsum(count)[:-1]]), count)
+    cols = order[np.arange(int(count.sum())) + start]
+    y = xy[cols, 1].astype(float)
+    ok = (y >= windows[r, 1]) & (y <= windows[r, 3])
+    mask[r[ok], cols[ok]] = True
+    return mask
+
+
+def method_name(kind: str, point_map: str = "reference") -> str:
+    """``orb``, ``sift`` (reference point map) or ``orb-all``, ``sift-all``."""
+    return kind if point_map == "reference" else f"{kind}-{point_map}"
 
 
 class PointLocaliser(WeakLocaliser):
-    """ORB or SIFT against the place keyframe's 3D points (a :class:`localiser.pipeline.WeakLocaliser`).
+    """ORB or SIFT against a place's keyframe 3D points (a :class:`localiser.pipeline.WeakLocaliser`).
 
     Parameters
     ----------
@@ -158,17 +228,40 @@ class PointLocaliser(WeakLocaliser):
         if kind not in ("orb", "sift"):
             raise ValueError(f"kind must be 'orb' or 'sift', got {kind!r}")
         self.kind = kind
-        self.name = kind
         self.config = _merge(config)
+        self.name = method_name(kind, self.config["point_map"])
         self.store = store
         self.camera = camera
         self.T_vehicle_camera = np.asarray(T_vehicle_camera, dtype=float)
         self._cache: OrderedDict[int, _MapPlace] = OrderedDict()
         self._lock = threading.Lock()
+        pm = self.config["point_map"]
         if len(store) and not any(self._place(i).features is not None and len(self._place(i).features)
                                   for i in list(store.places)[: min(3, len(store))]):
-            raise ValueError(f"map {store.root} has no {kind.upper()} point features (places hold no "
-                             f"'points/{kind}_*' arrays): rebuild it with a scenesig whose build-map writes them")
+            raise ValueError(f"map {store.root} has no {kind.upper()} point features for the {pm!r} point map "
+                             f"(places hold no 'points/{kind}{'' if pm == 'reference' else '_all'}_*' arrays): "
+                             f"rebuild it with a scenesig whose build-map writes them")
+
+    def method_config(self) -> dict:
+        cfg = self.config
+        return {"method": self.name, "family": "point features",
+                "features": f"{self.kind.upper()} (OpenCV), upright, the {cfg['n_features']} strongest per live image",
+                "n_features": cfg["n_features"], "feature_options": cfg["features"],
+                "matcher": {"ratio": "mutual nearest neighbour + Lowe ratio", "dapc": "mutual nearest neighbour + DAPC",
+                            "gms": "nearest neighbour + grid-based motion statistics"}[cfg["match"]],
+                "match": cfg["match"], "ratio": cfg["ratio"] if cfg["match"] == "ratio" else None,
+                "gms": cfg["gms"] if cfg["match"] == "gms" else None,
+                "point_map": cfg["point_map"],
+                "point_map_description": ("the reference run's keyframe per place (McManus et al. 2015's baseline)"
+                                          if cfg["point_map"] == "reference" else
+                                          "a keyframe from every training run per place; the one with the most "
+                                          "matches is used"),
+                "prior_gating": cfg["prior_gating"],
+                "gate": {k: cfg[k] for k in ("window_sigmas", "min_radius_px", "max_window_fraction")},
+                "min_matches": cfg["min_matches"],
+                "estimator": {**default_pnp_config, **cfg["pnp"]},
+                "min_inliers": {**solver_default, **cfg["solver"]}["min_inliers"],
+                "solver": {**solver_default, **cfg["solver"]}}
 
     # ------------------------------------------------------------------------------ map side
     def _place(self, index: int) -> _MapPlace:
@@ -178,14 +271,20 @@ class PointLocaliser(WeakLocaliser):
                 self._cache.move_to_end(index)
                 return self._cache[index]
         data = self.store.load_place(index)
-        feats = point_features(data.points, self.kind)
-        xyz = np.asarray(data.points.get(f"{self.kind}_xyz", np.zeros((0, 3))), dtype=float).reshape(-1, 3)
-        cov = None
-        if self.config["use_point_covariance"] and f"{self.kind}_sigma" in data.points and len(xyz):
-            cov = point_covariances(xyz, data.points[f"{self.kind}_sigma"], self.T_vehicle_camera)
-        if feats is not None and len(feats) != len(xyz):
-            raise ValueError(f"place {index}: {len(feats)} {self.kind} keypoints but {len(xyz)} 3D points")
-        mp = _MapPlace(feats, xyz, cov)
+        pm = self.config["point_map"]
+        feats = point_features(data.points, self.kind, pm)
+        if feats is None:
+            mp = _MapPlace(None, np.zeros((0, 3)), None, np.zeros(0, int), 0)
+        else:
+            pre = self.kind if pm == "reference" else f"{self.kind}_all"
+            xyz = np.asarray(data.points[f"{pre}_xyz"], dtype=float).reshape(-1, 3)
+            if len(feats) != len(xyz):
+                raise ValueError(f"place {index}: {len(feats)} {self.kind} keypoints but {len(xyz)} 3D points")
+            cov = None
+            if self.config["use_point_covariance"] and len(xyz):
+                cov = point_map_covariances(data.points, self.kind, pm, self.T_vehicle_camera)
+            keyframe, T_pk = point_keyframes(data.points, self.kind, pm)
+            mp = _MapPlace(feats, xyz, cov, keyframe, len(T_pk))
         with self._lock:
             self._cache[index] = mp
             while len(self._cache) > max(1, int(self.config["cache"])):
@@ -214,6 +313,19 @@ class PointLocaliser(WeakLocaliser):
             raise ValueError(f"image is {w}x{h} but the camera is {self.camera.width}x{self.camera.height}")
         return LiveFrame((h, w), self.live_features(image), (time.perf_counter() - t0) * 1e3)
 
+    def gate(self, mp: _MapPlace, live: PointFeatures, prior: MotionPrior | None) -> np.ndarray | None:
+        """(n_map, n_live) pairs allowed by the prior (None: no gating -- off, no prior, or lost)."""
+        cfg = self.config
+        if not cfg["prior_gating"] or prior is None or prior.lost or not len(mp.xyz):
+            return None
+        Q = np.eye(2) * float(cfg["pixel_sigma"]) ** 2
+        win, ok, _ = search_windows(mp.xyz, mp.cov, prior.T_place_vehicle, prior.covariance, self.camera,
+                                    self.T_vehicle_camera, Q,
+                                    {"window_sigmas": cfg["window_sigmas"],
+                                     "min_window_radius_px": cfg["min_radius_px"],
+                                     "max_window_fraction": cfg["max_window_fraction"]})
+        return window_mask(win, ok, live.xy)
+
     def detect(self, image, place: int, prior: MotionPrior | None = None) -> PointObservation:
         """Match the live features (an image, or its :meth:`prepare` result) to the place's map points.
 
@@ -229,18 +341,33 @@ class PointLocaliser(WeakLocaliser):
             return PointObservation(place, np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 3)), None,
                                     np.zeros(0, int), len(live), 0 if mp.features is None else len(mp.features),
                                     ms_extract + (time.perf_counter() - t0) * 1e3)
-        m = match_to_map(live, mp.features, cfg["filter"], bool(cfg["mutual"]), float(cfg["ratio"]))
+        mask = self.gate(mp, live, prior)
+        size = (self.camera.width, self.camera.height)
+        best, best_k = None, 0
+        # hloc-style retrieval by match count: each keyframe of the place is matched, the best is used
+        for k in range(mp.n_keyframes):
+            rows = np.flatnonzero(mp.keyframe == k) if mp.n_keyframes > 1 else np.arange(len(mp.features))
+            if not len(rows):
+                continue
+            sub = mp.features.subset(rows) if mp.n_keyframes > 1 else mp.features
+            m = match_to_map(live, sub, cfg["match"], float(cfg["ratio"]),
+                             None if mask is None else mask[rows], size, cfg["gms"])
+            if best is None or len(m) > len(best[0]):
+                best, best_k = (m, rows), k
+        m, rows = best
+        query = rows[m.query]
         uv = live.xy[m.train].astype(float)
         sig = keypoint_sigma(live.subset(m.train), float(cfg["pixel_sigma"]), cfg["features"])
         R = (sig ** 2)[:, None, None] * np.eye(2)[None]
-        cov = mp.cov[m.query] if mp.cov is not None else None
-        return PointObservation(place, uv, R, mp.xyz[m.query], cov, m.query, len(live), len(mp.features),
-                                ms_extract + (time.perf_counter() - t0) * 1e3)
+        cov = mp.cov[query] if mp.cov is not None else None
+        return PointObservation(place, uv, R, mp.xyz[query], cov, query, len(live), len(mp.features),
+                                ms_extract + (time.perf_counter() - t0) * 1e3,
+                                {"keyframe": int(best_k), "gated": mask is not None})
 
     # -------------------------------------------------------------------------------- solver
     def solve(self, obs: PointObservation, place: int, prior: MotionPrior | None) -> Measurement:
         n = len(obs)
-        extra = {"live_features": obs.n_live, "map_points": obs.n_map}
+        extra = {"live_features": obs.n_live, "map_points": obs.n_map, **obs.extra}
         if n < max(int(self.config["min_matches"]), 4):
             return Measurement(None, n, 0, "too_few_matches", obs.ms, 0.0, False, extra)
         T_prior = prior.T_place_vehicle if prior is not None else None
@@ -257,12 +384,13 @@ class PointLocaliser(WeakLocaliser):
             self._cache.clear()
 
 
-def _factory(kind):
+def _factory(kind, point_map):
     def make(store, camera, T_vehicle_camera, config=None):
-        return PointLocaliser(store, camera, T_vehicle_camera, config, kind=kind)
-    make.__name__ = f"make_{kind}"
+        return PointLocaliser(store, camera, T_vehicle_camera, {"point_map": point_map, **(config or {})}, kind=kind)
+    make.__name__ = f"make_{method_name(kind, point_map).replace('-', '_')}"
     return make
 
 
-register_method("orb", _factory("orb"))
-register_method("sift", _factory("sift"))
+for _kind in ("orb", "sift"):
+    for _pm in POINT_MAPS:
+        register_method(method_name(_kind, _pm), _factory(_kind, _pm))

@@ -43,6 +43,7 @@ Command line: ``scenesig localise MAP RUN --out DIR [--method signatures] [--eve
 """
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -102,6 +103,7 @@ class ReplayResult:
     reset_times: list = field(default_factory=list)   # times of the oracle resets (odometry times)
     corrupt: dict = field(default_factory=dict)       # frame -> reason: images that failed strict decoding
     timings: dict = field(default_factory=dict)
+    method_config: dict = field(default_factory=dict)  # the method's settings (WeakLocaliser.method_config)
 
 
 def _oracle(run: SurveyRun):
@@ -464,7 +466,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     return ReplayResult(run, method.name, "realtime" if realtime else "deterministic", None if realtime else every,
                         rec.times, rec.poses, rec.places, rec.detections, rec.inliers, rec.localised, resets,
                         rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times),
-                        dict(sorted(rec.corrupt.items())), timings)
+                        dict(sorted(rec.corrupt.items())), timings, _json_safe(method.method_config()))
 
 
 def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
@@ -478,6 +480,11 @@ def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
                     MIN_SIGNATURES, ", ".join(map(str, weak)))
 
 
+def _json_safe(obj):
+    """Settings as plain JSON types (tuples and numpy values become lists and numbers)."""
+    return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+
+
 def localise(map_root, run_root, out, method: str = "signatures", every: int = 4, realtime: bool = False,
              speed: float = 1.0, config: dict | None = None, progress: bool = True, figure: bool = True) -> dict:
     """Open the map and the run, replay, write the outputs; returns ``metrics.json``'s content."""
@@ -488,3 +495,24 @@ def localise(map_root, run_root, out, method: str = "signatures", every: int = 4
     result = replay(store, run, method, every=every, realtime=realtime, speed=speed, config=config,
                     progress=progress)
     return write_outputs(result, store, out, cfg["max_path_distance_m"], figure=figure)
+
+
+def method_options(method: str, match: str | None = None, point_map: str | None = None,
+                   prior_gating: bool = True) -> dict:
+    """The ``method`` config of :func:`replay` from the command line's options (an error for options
+    the method does not have)."""
+    opts = {}
+    if not prior_gating:
+        opts["prior_gating"] = False
+    if method == "signatures":
+        given = [f"--{k}" for k, v in (("match", match), ("point-map", point_map)) if v is not None]
+        if given:
+            raise ValueError(f"{' and '.join(given)} apply to the point-feature methods, not to signatures")
+        return opts
+    if match is not None:
+        opts["match"] = match
+    if point_map is not None:
+        if "-" in method and point_map != method.split("-", 1)[1]:
+            raise ValueError(f"--point-map {point_map} contradicts --method {method}")
+        opts["point_map"] = point_map
+    return opts

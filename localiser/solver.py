@@ -36,7 +36,7 @@ detections, no allocations beyond a few (N,2,6) arrays) and a GTSAM factor graph
 (``GenericProjectionFactorCal3_S2`` with landmarks as variables held by their map priors, Huber noise
 models, ``LevenbergMarquardtOptimizer``; ~11 ms), kept as an independent reference that the tests
 compare against, and for the benchmark (``scenesig bench solver``).  The same code serves point features via
-:func:`solve_pnp_prior`, which initialises with OpenCV's PnP + RANSAC.
+:func:`solve_pnp_prior`, which initialises with a robust absolute pose (:mod:`localiser.absolute_pose`).
 """
 from __future__ import annotations
 
@@ -47,6 +47,8 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from localiser.absolute_pose import default_config as absolute_pose_default
+from localiser.absolute_pose import estimate as estimate_absolute_pose
 from surveys.validation import check_array
 from surveys.settings import merge_settings
 from surveys.geometry import Camera, invert, point_pose_jacobian
@@ -69,13 +71,11 @@ default_config = {
     "backend": "numpy",         # "numpy" | "gtsam"
 }
 
-# PnP (point-feature) defaults, used by solve_pnp_prior only.
+# PnP (point-feature) defaults, used by solve_pnp_prior only: the robust initialisation is
+# localiser.absolute_pose (LO-RANSAC, iterations driven by the confidence), these are its options.
 default_pnp_config = {
     "pixel_sigma": 1.0,          # std. dev. of a keypoint position (px) when no R is given
-    "ransac_reprojection_px": 4.0,
-    "ransac_iterations": 200,
-    "ransac_confidence": 0.999,
-    "seed": 0,                   # OpenCV's RNG is global: seeded per call for repeatable results
+    **absolute_pose_default,
 }
 
 # Cost assigned to a detection whose landmark falls behind the camera (a Huber cost at this
@@ -495,8 +495,6 @@ def solve_pnp_prior(uv, points, camera: Camera, T_vehicle_camera, T_place_vehicl
         As :func:`solve`; ``extra["ransac_inliers"]`` counts RANSAC's inliers, reason
         ``"pnp_failed"`` when RANSAC finds no pose.
     """
-    import cv2
-
     t0 = time.perf_counter()
     cfg = _merge(config, default_config)
     pcfg = _merge(pnp_config, default_pnp_config)
@@ -507,23 +505,17 @@ def solve_pnp_prior(uv, points, camera: Camera, T_vehicle_camera, T_place_vehicl
     T_prior = T_place_vehicle_prior
     prob = _Problem(uv, R, points, points_cov, camera, T_vehicle_camera, T_prior,
                     P_prior if T_prior is not None else None, cfg)
-    extra = {"ransac_inliers": 0}
+    extra = {"ransac_inliers": 0, "ransac_iterations": 0}
     start = T_prior if T_prior is not None else np.eye(4)
     if n < max(cfg["min_inliers"], 4):
         return _solve(prob, start, np.arange(0), t0, extra)
-    cv2.setRNGSeed(int(pcfg["seed"]))
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(
-        prob.landmarks.astype(np.float64), np.ascontiguousarray(uv, np.float64), camera.K,
-        np.asarray(camera.distortion, float) if any(camera.distortion) else None,
-        iterationsCount=int(pcfg["ransac_iterations"]), reprojectionError=float(pcfg["ransac_reprojection_px"]),
-        confidence=float(pcfg["ransac_confidence"]), flags=cv2.SOLVEPNP_EPNP)
-    if not ok or inl is None or len(inl) < 4:
+    ap = estimate_absolute_pose(uv, prob.landmarks, camera,
+                                {k: v for k, v in pcfg.items() if k in absolute_pose_default})
+    extra["ransac_iterations"] = ap.iterations
+    if not ap.ok:
         res = _solve(prob, start, np.arange(0), t0, extra)
         res.reason = "pnp_failed"
         return res
-    extra["ransac_inliers"] = int(len(inl))
-    T_cam_place = np.eye(4)
-    T_cam_place[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T_cam_place[:3, 3] = tvec.ravel()
-    T_init = invert(prob.T_vehicle_camera @ T_cam_place)
-    return _solve(prob, T_init, inl.ravel(), t0, extra)
+    extra["ransac_inliers"] = ap.n_inliers
+    T_init = invert(prob.T_vehicle_camera @ ap.T_cam_place)
+    return _solve(prob, T_init, np.flatnonzero(ap.inliers), t0, extra)

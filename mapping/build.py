@@ -52,7 +52,7 @@ from signatures.hog import level_scale
 from mapping import georef as georef_mod
 from mapping import places as places_mod
 from mapping.coverage import MIN_SIGNATURES
-from mapping.pointmap import build_point_features
+from mapping.pointmap import build_point_features, build_point_features_all
 from mapping.refine import Detections, REASONS, refine_landmarks
 from mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
 from surveys.io import atomic_write_bytes
@@ -75,6 +75,9 @@ default_config = {
     "max_window_frames": 21,      # refinement window subsampled to at most this many frames
     "keyframe_width": 160,
     "points": {},                 # overrides of mapping.pointmap.default_config (ORB/SIFT baseline map)
+    # point maps stored for the baselines: "reference" (the reference run's keyframe, the paper's
+    # baseline) and "all" (a keyframe from every training run at the place)
+    "point_maps": ["reference", "all"],
     # overrides of signatures.bank.default_config for the window detections: two pyramid levels either
     # side (the bank's default is one) let the detector follow a patch that grows or shrinks by up to
     # 41 % over the window instead of lagging (measured on the demo world: median landmark depth error
@@ -319,12 +322,20 @@ def _build_place(place, views, negatives, config):
     # place's world pose per run, combined over all places in build_map (mapping.georef)
     georef_obs = georef_mod.observe_place(place, views, images, kept_bank, landmarks, covs,
                                           Q=cfg["refine"].get("Q"), config=cfg["georeference"])
+    points = build_point_features(ref, camera, T_vc, cfg["points"])
+    if "all" in cfg["point_maps"]:
+        # every training run's keyframe, moved into the place frame by the visual solve above
+        poses = [np.eye(4)] + [None] * (len(views) - 1)
+        for k, o in enumerate(georef_obs[:len(views)]):
+            if k and o.get("ok") and o.get("T_place_vehicle") is not None:
+                poses[k] = np.asarray(o["T_place_vehicle"], float)
+        points.update(build_point_features_all(views, poses, cfg["points"], reference_points=points))
     data = PlaceData(
         bank_arrays=kept_bank.to_arrays(), landmarks=landmarks, covariances=covs,
         classifier_ids=np.arange(len(keep), dtype=np.int64),
         keyframe=encode_keyframe(images[0], width=cfg["keyframe_width"]),
         # the point-feature baseline's keyframe features and 3D points live beside the bank
-        points=build_point_features(ref, camera, T_vc, cfg["points"]),
+        points=points,
         meta={"reference_run": ref.run.name, "reference_frame": int(ref.frame),
               "training_runs": [v.run.name for v in views], "detections_at_reference": [[float(v) if np.isfinite(v) else None for v in b] for b in boxes],
               "mined": int(n), "kept": int(len(keep)), "georef": georef_obs},

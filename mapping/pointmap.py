@@ -34,6 +34,10 @@ Everything is in the place frame (the vehicle frame of the keyframe), like the s
     triangulation's information matrix with ``pixel_sigma`` per keypoint.  :func:`point_covariances`
     turns it back into (N,3,3) covariances.
 
+The ``all`` point map (:func:`build_point_features_all`) holds the same per keyframe for a keyframe of
+every training run at the place, moved into the place frame: ``{kind}_all_kp``, ``_desc``, ``_xyz``,
+``_sigma``, ``_keyframe`` (which keyframe each point belongs to) and ``all_T_place_keyframe`` (K,4,4).
+
 :func:`add_to_map` adds the point features to an existing map built without them (every place file is
 rewritten atomically with its new checksum; the banks are untouched).
 
@@ -53,7 +57,9 @@ from signatures.pointfeatures import PointFeatures, extract, match
 from signatures.pointfeatures import default_config as features_default
 from mapping.geometry import camera_poses, ideal_camera, ideal_pixels, reproject_jacobian
 
-__all__ = ["default_config", "build_point_features", "triangulate_keyframe", "triangulate_tracks",
+__all__ = ["default_config", "build_point_features", "build_point_features_all", "combine_keyframe_maps",
+           "point_keyframes",
+           "point_map_covariances", "POINT_MAPS", "triangulate_keyframe", "triangulate_tracks",
            "point_covariances", "point_features", "select_frames", "keypoint_sigma", "add_to_map", "KINDS",
            "TriangulationStats"]
 
@@ -294,17 +300,63 @@ def _compress_sigma(xyz, cov, T_vehicle_camera) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------
 # features
 # --------------------------------------------------------------------------------------------------
-def point_features(points: dict, kind: str) -> PointFeatures | None:
-    """The stored map features of one kind as :class:`PointFeatures` (None if the place has none)."""
-    key = f"{kind}_kp"
+def point_features(points: dict, kind: str, point_map: str = "reference") -> PointFeatures | None:
+    """The stored map features of one kind as :class:`PointFeatures` (None if the place has none).
+
+    ``point_map``: ``"reference"`` (the reference run's keyframe) or ``"all"`` (the keyframes of every
+    training run, :func:`build_point_features_all`; :func:`point_keyframes` says which is which).
+    """
+    key = f"{_prefix(kind, point_map)}_kp"
     if key not in points:
         return None
     xy = np.asarray(points[key], dtype=np.float32).reshape(-1, 2)
-    desc = np.asarray(points[f"{kind}_desc"])
+    desc = np.asarray(points[f"{_prefix(kind, point_map)}_desc"])
     desc = desc.astype(np.uint8) if kind == "orb" else desc.astype(np.float32)
     n = len(xy)
     z = np.zeros(n, np.float32)
     return PointFeatures(kind, xy, z, z.copy(), z.copy(), np.zeros(n, np.int64), np.ascontiguousarray(desc))
+
+
+POINT_MAPS = ("reference", "all")
+
+
+def _prefix(kind: str, point_map: str) -> str:
+    if point_map not in POINT_MAPS:
+        raise ValueError(f"point map must be one of {POINT_MAPS}, got {point_map!r}")
+    return kind if point_map == "reference" else f"{kind}_all"
+
+
+def point_keyframes(points: dict, kind: str, point_map: str = "reference"):
+    """Which keyframe each stored point belongs to, and the keyframes' vehicle poses in the place frame.
+
+    Returns ``(keyframe (N,) int, T_place_keyframe (K,4,4))``; the reference map has one keyframe,
+    the identity (it defines the place frame).
+    """
+    pre = _prefix(kind, point_map)
+    n = len(np.asarray(points.get(f"{pre}_kp", np.zeros((0, 2)))).reshape(-1, 2))
+    if point_map == "reference":
+        return np.zeros(n, int), np.eye(4)[None]
+    return (np.asarray(points[f"{pre}_keyframe"], dtype=int).reshape(-1),
+            np.asarray(points["all_T_place_keyframe"], dtype=float).reshape(-1, 4, 4))
+
+
+def point_map_covariances(points: dict, kind: str, point_map: str, T_vehicle_camera) -> np.ndarray | None:
+    """(N,3,3) place-frame covariances of a point map's points (None when it stores no uncertainty).
+
+    Each point's stored ``(σ_across, σ_along)`` is relative to the ray from *its* keyframe's camera.
+    """
+    pre = _prefix(kind, point_map)
+    if f"{pre}_sigma" not in points:
+        return None
+    xyz = np.asarray(points[f"{pre}_xyz"], dtype=float).reshape(-1, 3)
+    sig = np.asarray(points[f"{pre}_sigma"], dtype=float).reshape(-1, 2)
+    kf, T_pk = point_keyframes(points, kind, point_map)
+    cov = np.zeros((len(xyz), 3, 3))
+    T_vc = np.asarray(T_vehicle_camera, dtype=float)
+    for k in np.unique(kf):
+        sel = kf == k
+        cov[sel] = point_covariances(xyz[sel], sig[sel], T_pk[k] @ T_vc)
+    return cov
 
 
 def _compact_descriptors(desc: np.ndarray, kind: str) -> np.ndarray:
@@ -452,6 +504,73 @@ def build_point_features(view, camera: Camera, T_vehicle_camera: np.ndarray, con
     T = np.asarray(view.T_frame_window, dtype=float)[rows].reshape(-1, 4, 4)
     points, stats = triangulate_keyframe(key, images, T, camera, T_vehicle_camera, cfg)
     return (points, stats) if return_stats else points
+
+
+def build_point_features_all(views, T_place_views, config: dict | None = None, reference_points=None) -> dict:
+    """Point map of a place from every training run: one keyframe per run, all in the place frame.
+
+    What a user with several surveys builds (hloc-style: many database images per place, the live
+    image matched to the one it matches best).  Each run's keyframe is triangulated from that run's
+    own window (:func:`build_point_features`) and moved into the place frame with the run's pose
+    relative to the place, which the map builder has already solved (``T_place_views``: the
+    georeferencing's visual solve of each training image, :func:`mapping.georef.observe_place`;
+    None where it failed -- that run's keyframe is left out, as an image that does not register is
+    left out of an SfM model).
+
+    Parameters
+    ----------
+    views : list of :class:`mapping.places.TrainingView`, the reference run's first.
+    T_place_views : list of (4,4) or None, the vehicle pose of each view's frame in the place frame.
+    config : overrides of :data:`default_config`.
+    reference_points : the reference view's :func:`build_point_features` output, if already built.
+
+    Returns
+    -------
+    dict of str -> ndarray
+        ``{kind}_all_kp``, ``_desc``, ``_xyz`` (place frame), ``_sigma`` (w.r.t. each point's own
+        keyframe ray), ``_keyframe`` (int16 index into the keyframes) for each kind, and
+        ``all_T_place_keyframe`` (K,4,4) float32.
+    """
+    cfg = _merge(config)
+    if len(views) != len(T_place_views):
+        raise ValueError(f"{len(views)} views but {len(T_place_views)} poses")
+    parts, poses = [], []
+    for k, (view, T) in enumerate(zip(views, T_place_views)):
+        if T is None:
+            continue
+        pts = reference_points if (k == 0 and reference_points is not None) else \
+            build_point_features(view, view.run.camera, view.run.T_vehicle_camera, cfg)
+        parts.append(pts)
+        poses.append(np.asarray(T, dtype=float))
+    return combine_keyframe_maps(parts, poses, cfg["kinds"])
+
+
+def combine_keyframe_maps(parts: list, T_place_keyframes: list, kinds=KINDS) -> dict:
+    """One ``all`` point map from keyframe point maps (each in its own keyframe's vehicle frame).
+
+    ``parts[j]`` is a :func:`build_point_features` output and ``T_place_keyframes[j]`` (4,4) that
+    keyframe's vehicle pose in the place frame; see :func:`build_point_features_all` for the keys.
+    """
+    poses = [np.asarray(T, dtype=float) for T in T_place_keyframes]
+    out = {"all_T_place_keyframe": np.asarray(poses, np.float32).reshape(-1, 4, 4)}
+    for kind in kinds:
+        for name in ("kp", "desc", "xyz", "sigma", "keyframe"):
+            arrays = []
+            for j, (pts, T) in enumerate(zip(parts, poses)):
+                if name == "keyframe":
+                    arrays.append(np.full(len(pts[f"{kind}_kp"]), j, np.int16))
+                elif name == "xyz":
+                    xyz = pts[f"{kind}_xyz"].astype(float).reshape(-1, 3)
+                    arrays.append((xyz @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
+                else:
+                    arrays.append(pts[f"{kind}_{name}"])
+            if name == "desc":
+                dt = np.result_type(*[a.dtype for a in arrays]) if arrays else np.uint8
+                arrays = [a.astype(dt) for a in arrays]
+            empty = {"kp": (0, 2), "xyz": (0, 3), "sigma": (0, 2), "keyframe": (0,),
+                     "desc": (0, 32 if kind == "orb" else 128)}[name]
+            out[f"{kind}_all_{name}"] = np.concatenate(arrays) if arrays else np.zeros(empty, np.float32)
+    return out
 
 
 def add_to_map(map_root, reference, config: dict | None = None, overwrite: bool = False,

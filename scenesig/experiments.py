@@ -8,8 +8,9 @@ matched against the map.  A match counts when the feature sits in the same place
 ``||y_map - y_live|| < δ`` with δ = 15 px.  For scene signatures the map positions are the bank's
 detections in the reference keyframe (``PlaceData.meta["detections_at_reference"]``) and the live
 ones the bank's best detection in the live frame; for ORB and SIFT the map positions are the keyframe
-features the point-feature localiser uses (those with a 3D point) and the live ones their mutual
-nearest-neighbour + DAPC matches (:mod:`localiser.pointmethod`).  Outputs: matches per place per run
+features the point-feature localiser uses (those with a 3D point) and the live ones their matches by
+the point localiser's matcher (:mod:`localiser.pointmethod`: mutual nearest neighbour + ratio 0.8, no
+prior gating).  Outputs: matches per place per run
 (Figs 11, 14) and heat maps of where matches fall -- +1 for every pixel inside a matched shape, averaged
 over the runs, per place and over all places (Figs 12, 13).
 
@@ -133,7 +134,7 @@ def signature_matches(bank: Bank, reference_xy: np.ndarray, image: np.ndarray, d
 
 
 def point_matches(points: dict, kind: str, image: np.ndarray, delta_px: float = 15.0, config: dict | None = None):
-    """ORB/SIFT matches (mutual NN + DAPC) of a live image to a place's keyframe features within δ.
+    """ORB/SIFT matches (the point localiser's matcher, without prior gating) of a live image to a place's keyframe features within δ.
 
     Returns
     -------
@@ -149,7 +150,8 @@ def point_matches(points: dict, kind: str, image: np.ndarray, delta_px: float = 
     live = extract(_image_for(image, False), kind, n_features=int(cfg["n_features"]), config=cfg["features"])
     if not len(live):
         return 0, np.zeros((0, 4)), 0
-    m = match_to_map(live, mapf, cfg["filter"], bool(cfg["mutual"]), float(cfg["ratio"]))
+    m = match_to_map(live, mapf, cfg["match"], float(cfg["ratio"]), image_size=(image.shape[1], image.shape[0]),
+                     gms=cfg["gms"])
     dist = np.linalg.norm(live.xy[m.train] - mapf.xy[m.query], axis=1)
     ok = dist < delta_px
     xy = live.xy[m.train[ok]].astype(float)

@@ -20,7 +20,8 @@ __all__ = ["METHOD_COLORS", "plot_matching_counts", "plot_matching_heatmaps", "w
            "plot_dead_reckoning", "localisation_figures"]
 
 #: Method colours, as in the paper where it has them (signatures red, point features green, INS blue).
-METHOD_COLORS = {"signatures": "tab:red", "orb": "tab:green", "sift": "tab:olive", "ins": "tab:blue",
+METHOD_COLORS = {"signatures": "tab:red", "orb": "tab:green", "sift": "tab:olive", "orb-all": "tab:cyan",
+                 "sift-all": "tab:brown", "ins": "tab:blue",
                  "truth": "k"}
 
 

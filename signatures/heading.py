@@ -27,10 +27,15 @@ Vote weights: ``(lambda_map * lambda_live) ** prob_weight`` times ``1 / (1 + (s_
 where ``s_x`` is the classifier's training spread (:attr:`signatures.bank.Classifier.spread`): how
 far its firings in the training sessions strayed from the ground-truth alignment.  Signatures on
 near structure move with the robot's position (parallax), not only with its heading, and are the
-main source of error on stromovka (3.0 % of pairs wrong without this weight, 0.3 % with it).  On
-the sequence layout lambda is calibrated on augmented copies of one summer image and says little
-about a winter detection, so there every classifier votes with equal probability weight
-(``min_prob = 0``, ``prob_weight = 0``; 22 instead of 39 errors of 101 on season).
+main source of error on stromovka.
+
+**One configuration for every folder.**  The settings above are the same for every data set; the
+only thing that depends on the data is a rule that reads the *training* images alone: a bank mined
+from fewer than ``calibrated_min_appearances`` real appearances of its place (one summer image and
+its augmented copies on the sequence layout) has a detection probability lambda calibrated on
+synthetic changes only, which says little about a real change of season; such a bank's classifiers
+all vote, with equal probability weight (``min_prob`` and ``prob_weight`` become 0 for it).  The
+live images and their truth are never read to choose a setting.
 
 Images are processed at ``scale`` (default 0.5: 1024x384 -> 512x192) and results reported in
 full-resolution pixels.
@@ -50,7 +55,7 @@ from signatures import mining
 from signatures.augment import augment
 from surveys.settings import merge_settings
 
-__all__ = ["default_config", "SignatureHeading", "estimate_heading_signatures", "vote_displacement",
+__all__ = ["default_config", "bank_config", "SignatureHeading", "estimate_heading_signatures", "vote_displacement",
            "augment"]
 
 log = logging.getLogger(__name__)
@@ -62,9 +67,14 @@ default_config = {
     "max_classifiers": None,        # keep only the N best classifiers of a bank
     "external_negative_images": 4,  # other places' images per bank as external negatives
     "map_search_px": 48.0,          # map image: search radius around the trained position
-    "live_search_y_px": 48.0,       # live image: vertical search radius (whole width always)
+    "live_search_y_px": 96.0,       # live image: vertical search radius (whole width always); a
+                                    # quarter of GRIEF's 384-px height: pitch and the path's offset
+                                    # between visits move the scene vertically too
     "min_prob": 0.5,                # a classifier "fires" when lambda >= this
     "prob_weight": 1.0,             # votes weighted by (lambda_map * lambda_live) ** this
+    # Rule on the training data only: a bank mined from fewer real appearances of its place than
+    # this has an uncalibrated lambda, so all its classifiers vote equally (min_prob = prob_weight = 0)
+    "calibrated_min_appearances": 2,
     "live_top_n": 1,                # live detections per classifier that vote (NMS-separated)
     "rank_decay": 0.5,              # vote weight of the r-th live detection: rank_decay ** r
     "min_votes": 3,                 # fewer firing classifiers: vote with all classifiers
@@ -74,17 +84,6 @@ default_config = {
     "augment_shift_px": 24.0,       # sequence layout: max left/right shift of a copy
     "seed": 0,
 }
-
-#: Overrides applied for the sequence layout (one map image; large viewpoint changes).
-sequence_overrides = {
-    "live_search_y_px": 96.0,
-    # Calibrated on augmented copies of one summer image, lambda says little about a winter
-    # detection (winter scores are uniformly low), so every classifier votes, equally: the
-    # position of its best live window still carries the information.
-    "min_prob": 0.0,
-    "prob_weight": 0.0,
-}
-
 
 # ---------------------------------------------------------------------------------- voting
 
@@ -203,9 +202,7 @@ class SignatureHeading:
             from surveys.grief import load
             dataset = load(dataset)
         self.dataset = dataset
-        base = merge_settings(default_config, sequence_overrides if dataset.kind == "sequence" else None,
-                              "heading", open=("mining",))
-        self.config = merge_settings(base, config, "heading", open=("mining",))
+        self.config = merge_settings(default_config, config, "heading", open=("mining",))
         self.n_jobs = int(n_jobs)
         self.progress = progress
         self.records: dict = {}
@@ -296,7 +293,10 @@ def _run_group(ds, g: _Group, cfg: dict):
 
     bank, stats = mining.mine_place(images, offsets, config=mcfg, negatives=negatives, n_jobs=1,
                                     rng=int(cfg["seed"]))
-    st = {"place": g.place, "live": g.live, **stats.as_dict(), "bank_size": len(bank)}
+    # the one data-dependent rule: it counts the real (not augmented) training appearances
+    cfg = bank_config(cfg, len(g.train))
+    st = {"place": g.place, "live": g.live, **stats.as_dict(), "bank_size": len(bank),
+          "appearances": len(g.train), "calibrated": cfg["calibrated"]}
     recs = {}
     if len(bank) == 0:
         for key in g.pairs:
@@ -324,6 +324,19 @@ def _run_group(ds, g: _Group, cfg: dict):
                               windows=win)
         recs[key] = _vote_pair(det_map, det_live, cfg, scale, spread)
     return recs, st
+
+
+def bank_config(cfg: dict, appearances: int) -> dict:
+    """The settings one bank votes with: ``cfg`` after the training-data rule (module docstring).
+
+    ``appearances`` is the number of real training images of the place the bank was mined from
+    (augmented copies do not count).  Adds ``calibrated`` (bool).
+    """
+    out = dict(cfg)
+    out["calibrated"] = int(appearances) >= int(cfg["calibrated_min_appearances"])
+    if not out["calibrated"]:
+        out["min_prob"], out["prob_weight"] = 0.0, 0.0
+    return out
 
 
 def _vote_pair(det_map, det_live, cfg, scale, spread) -> PairRecord:

@@ -7,10 +7,11 @@ both use these pieces, so each stage is its own function:
    optionally make them *upright* (orientation forced to 0 before the descriptor is computed, as
    the GRIEF protocol does: a ground robot's camera does not roll, so rotation invariance only
    costs distinctiveness).
-2. :func:`match` -- brute-force 2-NN matching with one of three filters: Lowe's ratio test,
+2. :func:`match` -- brute-force 2-NN matching with one of four filters: Lowe's ratio test,
    the DAPC adaptive-distance test (Zhang et al., "Multi-Modal Scene Matching Location Algorithm
-   Based on M2Det", CMC 2023, eq. 6-7: keep a match when ``d1 < d2 - mean(d2 - d1)``), or none;
-   optionally mutual (cross-checked) nearest neighbours.
+   Based on M2Det", CMC 2023, eq. 6-7: keep a match when ``d1 < d2 - mean(d2 - d1)``), grid-based
+   motion statistics (:func:`gms_filter`; Bian et al. CVPR 2017), or none; optionally mutual
+   (cross-checked) nearest neighbours, and optionally guided (a mask of the pairs allowed).
 3. :func:`vote_displacement` -- histogram voting of the matches' horizontal offsets: the most
    populated 20-px bin wins and the estimate is the mean offset inside it (as the GRIEF evaluation
    code does).  ``voting="fixed"`` uses a grid of bins aligned at 0 (the plain reading of
@@ -27,11 +28,21 @@ import numpy as np
 
 from surveys.settings import merge_settings
 
-__all__ = ["default_config", "PointFeatures", "Matches", "Vote", "extract", "match",
+__all__ = ["default_config", "PointFeatures", "Matches", "Vote", "extract", "match", "gms_filter",
+           "gms_default_config",
            "vote_displacement", "estimate_displacement", "FEATURE_KINDS", "MATCH_FILTERS"]
 
 FEATURE_KINDS = ("orb", "sift", "rootsift")
-MATCH_FILTERS = ("ratio", "dapc", "none")
+MATCH_FILTERS = ("ratio", "dapc", "gms", "none")
+
+#: Grid-based motion statistics (Bian et al., "GMS: Grid-based Motion Statistics for Fast,
+#: Ultra-robust Feature Correspondence", CVPR 2017), the settings of the authors' code.
+gms_default_config = {
+    # cells per image side; "auto": sqrt(matches / 20) within [4, 20] -- the authors' 20 x 20 holds
+    # ~25 matches a cell with their 10000 features; a few hundred matches need coarser cells
+    "grid": "auto",
+    "alpha": 6.0,          # threshold tau = alpha * sqrt(mean matches per cell of the 3x3 block)
+}
 
 #: Defaults = the published GRIEF protocol (1600 upright features, ratio 0.9, 20-px bins).
 default_config = {
@@ -250,11 +261,14 @@ def _dedupe(kps) -> list:
     return out
 
 
-def _knn(da: np.ndarray, db: np.ndarray, norm: int):
-    """2-NN of each row of da among rows of db: (index1, dist1, dist2)."""
+def _knn(da: np.ndarray, db: np.ndarray, norm: int, mask: np.ndarray | None = None):
+    """2-NN of each row of da among rows of db (only pairs ``mask`` allows): (index1, dist1, dist2)."""
     m = cv2.BFMatcher(norm, crossCheck=False)
     k = min(2, len(db))
-    res = m.knnMatch(da, db, k=k)
+    if mask is not None:
+        res = m.knnMatch(da, db, k=k, mask=np.ascontiguousarray(mask, dtype=np.uint8))
+    else:
+        res = m.knnMatch(da, db, k=k)
     idx = np.array([r[0].trainIdx if r else -1 for r in res], np.int64)
     d1 = np.array([r[0].distance if r else np.inf for r in res], np.float64)
     d2 = np.array([r[1].distance if len(r) > 1 else np.inf for r in res], np.float64)
@@ -262,7 +276,8 @@ def _knn(da: np.ndarray, db: np.ndarray, norm: int):
 
 
 def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: float = 0.9,
-          mutual: bool = False, dapc_over: str = "all") -> Matches:
+          mutual: bool = False, dapc_over: str = "all", mask: np.ndarray | None = None,
+          gms: dict | None = None) -> Matches:
     """Match descriptors of ``a`` to ``b`` (brute force, 2 nearest neighbours).
 
     Parameters
@@ -282,6 +297,12 @@ def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: floa
         Which 2-NN pairs the DAPC mean gap is taken over: all of a's (default), or -- with
         ``mutual`` -- only the mutual pairs, the order of the M2Det scene-matching paper's procedure (§3.4) (bidirectional
         matching first, steps c-e, then the dynamic distance test, step f).
+    mask : ndarray of bool, shape (len(a), len(b)), optional
+        Pairs allowed to match (guided matching: e.g. b's keypoints near a's predicted projection);
+        nearest neighbours, ratios and the mutual check are taken among allowed pairs only.
+    gms : dict, optional
+        With ``filter="gms"``: overrides of :data:`gms_default_config` (``image_size_a`` and
+        ``image_size_b`` default to each side's ``image_shape``).
 
     Returns
     -------
@@ -298,10 +319,14 @@ def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: floa
         raise ValueError(f"dapc_over must be 'all' or 'mutual', got {dapc_over!r}")
     if dapc_over == "mutual" and filter == "dapc" and not mutual:
         raise ValueError("dapc_over='mutual' needs mutual=True")
-    idx, d1, d2 = _knn(a.descriptors, b.descriptors, a.norm)
+    if mask is not None:
+        mask = np.asarray(mask, bool)
+        if mask.shape != (len(a), len(b)):
+            raise ValueError(f"mask must have shape {(len(a), len(b))}, got {mask.shape}")
+    idx, d1, d2 = _knn(a.descriptors, b.descriptors, a.norm, mask)
     keep = idx >= 0
     if mutual:
-        back, _, _ = _knn(b.descriptors, a.descriptors, a.norm)
+        back, _, _ = _knn(b.descriptors, a.descriptors, a.norm, None if mask is None else mask.T)
         keep &= back[np.clip(idx, 0, None)] == np.arange(len(a))
     if filter == "ratio":
         keep &= d1 < ratio * d2
@@ -310,8 +335,82 @@ def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: floa
         finite = np.isfinite(d2) & pool
         gap = float(np.mean(d2[finite] - d1[finite])) if finite.any() else 0.0
         keep &= d1 < d2 - gap
+    elif filter == "gms":
+        cfg = {**gms_default_config, **(gms or {})}
+        size_a = cfg.pop("image_size_a", None) or a.image_shape[::-1]
+        size_b = cfg.pop("image_size_b", None) or b.image_shape[::-1]
+        q = np.flatnonzero(keep)
+        ok = gms_filter(a.xy[q], b.xy[idx[q]], size_a, size_b, **cfg)
+        keep[q[~ok]] = False
     q = np.flatnonzero(keep)
     return Matches(q, idx[q], d1[q], d2[q])
+
+
+def gms_filter(xy_a: np.ndarray, xy_b: np.ndarray, size_a, size_b, grid="auto",
+               alpha: float = 6.0) -> np.ndarray:
+    """Grid-based motion statistics: which putative matches ``xy_a[i] -> xy_b[i]`` are consistent.
+
+    A true match moves with its neighbours, so the 3x3 block of grid cells around it in image a
+    sends many matches to the corresponding block around its cell in image b; a false one has
+    little such support (Bian et al. 2017; as Fan et al., "PSiamRML: Target Recognition and Matching
+    Integrated Localization Algorithm Based on Pseudo-Siamese Network", §4.2, eqs. 3-7, use it).
+    Per cell of a, its matches' most frequent destination cell is the cell pair's motion; a match on that motion is kept when the support
+    ``s`` (matches from the 9 neighbouring cells to the 9 cells around the destination, the same
+    relative neighbour on each side) exceeds ``tau = alpha * sqrt(n / 9)``, ``n`` the matches
+    leaving the 9 cells of a.  As in the authors' code the grid is tried at four half-cell shifts
+    and a match kept by any of them is kept.
+
+    Parameters
+    ----------
+    xy_a, xy_b : (M, 2) matched keypoint positions.
+    size_a, size_b : (width, height) of the two images.
+    grid : cells per side, or ``"auto"`` (:data:`gms_default_config`).
+    alpha : threshold factor.
+
+    Returns
+    -------
+    ndarray of bool, shape (M,)
+    """
+    xy_a = np.asarray(xy_a, float).reshape(-1, 2)
+    xy_b = np.asarray(xy_b, float).reshape(-1, 2)
+    m = len(xy_a)
+    keep = np.zeros(m, bool)
+    if m == 0:
+        return keep
+    g = int(np.clip(round(np.sqrt(m / 20.0)), 4, 20)) if grid == "auto" else int(grid)
+    off = np.array([[-1, -1], [0, -1], [1, -1], [-1, 0], [0, 0], [1, 0], [-1, 1], [0, 1], [1, 1]])
+
+    def cells(xy, size, shift):
+        w, h = float(size[0]), float(size[1])
+        c = np.floor((xy / [w, h]) * g + shift).astype(int)
+        return np.clip(c, 0, g)            # a shifted grid has g + 1 cells per side
+
+    for shift in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
+        gs = g + 1
+        ca, cb = cells(xy_a, size_a, shift), cells(xy_b, size_b, shift)
+        ia = ca[:, 1] * gs + ca[:, 0]
+        ib = cb[:, 1] * gs + cb[:, 0]
+        motion = np.zeros((gs * gs, gs * gs), np.int32)
+        np.add.at(motion, (ia, ib), 1)
+        per_cell = motion.sum(axis=1)
+        best = motion.argmax(axis=1)                    # each cell of a's dominant destination
+        on_motion = best[ia] == ib
+        src = ia[on_motion]
+        sa = np.column_stack([src % gs, src // gs])
+        da = np.column_stack([best[src] % gs, best[src] // gs])
+        support = np.zeros(len(src))
+        n = np.zeros(len(src))
+        for d in off:
+            pa, pb = sa + d, da + d
+            ok = (pa >= 0).all(1) & (pa < gs).all(1) & (pb >= 0).all(1) & (pb < gs).all(1)
+            fa = np.where(ok, pa[:, 1] * gs + pa[:, 0], 0)
+            fb = np.where(ok, pb[:, 1] * gs + pb[:, 0], 0)
+            support += np.where(ok, motion[fa, fb], 0)
+            n += np.where(ok, per_cell[fa], 0)
+        # the match itself is not its own support (eq. 3: s = |x| - 1)
+        good = (support - 1) > alpha * np.sqrt(n / 9.0)
+        keep[np.flatnonzero(on_motion)[good]] = True
+    return keep
 
 
 def vote_displacement(dx: np.ndarray, bin_px: float = 20.0, voting: str = "sliding",

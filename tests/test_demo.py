@@ -9,7 +9,7 @@ from scenesig.demo import default_config
 
 METRIC_KEYS = {"method", "run", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
                "failures_per_km", "blind_fraction_over_20m", "ms_per_detection", "ms_per_solve",
-               "ms_per_odometry_update", "realtime_factor"}
+               "ms_per_odometry_update", "realtime_factor", "method_config"}
 
 
 @pytest.fixture(scope="module")
@@ -21,13 +21,16 @@ def demo_out(tmp_path_factory):
 
 def test_summary_schema(demo_out):
     s = json.loads((demo_out / "summary.json").read_text())
-    assert set(s) >= {"runs", "seconds"} and s["seconds"] > 0
+    assert set(s) >= {"runs", "seconds", "localise_seconds_by_method"} and s["seconds"] > 0
+    # signatures and the four point-feature baselines (reference and all-runs point maps)
+    assert set(default_config["methods"]) == {"signatures", "orb", "sift", "orb-all", "sift-all"}
+    assert set(s["localise_seconds_by_method"]) == set(default_config["methods"])
     assert [r["conditions"] for r in s["runs"]] == [[c] for c in default_config["live"]]
     for r in s["runs"]:
-        assert set(r["methods"]) == {"signatures", "orb", "sift"}
+        assert set(r["methods"]) == set(default_config["methods"])
         for name, m in r["methods"].items():
             assert METRIC_KEYS <= set(m), METRIC_KEYS - set(m)
-            assert m["method"] == name and m["run"] == r["run"]
+            assert m["method"] == name and m["run"] == r["run"] and m["method_config"]["method"] == name
             # the summary holds the localiser's own metrics.json, not a copy that could drift
             on_disk = json.loads((demo_out / "localise" / r["run"] / name / "metrics.json").read_text())
             assert on_disk == m

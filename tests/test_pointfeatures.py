@@ -99,3 +99,51 @@ def test_estimate_known_shift(kind):
     vote, m = pf.estimate_displacement(pf.extract(a, kind, 500), pf.extract(b, kind, 500))
     assert vote.displacement == pytest.approx(37.0, abs=1.0)
     assert vote.support >= 20 and vote.inliers.sum() == vote.support
+
+
+def _planted(seed=0, n_true=300, n_false=300, size=(640, 480)):
+    """Matches a -> b: ``n_true`` moving together (a smooth motion: a shift and a small zoom),
+    ``n_false`` random; descriptors of the true ones agree (small noise), of the false ones not."""
+    rng = np.random.default_rng(seed)
+    w, h = size
+    xa = rng.uniform([0, 0], [w, h], (n_true + n_false, 2))
+    xb = np.empty_like(xa)
+    xb[:n_true] = (xa[:n_true] - [w / 2, h / 2]) * 1.05 + [w / 2 + 25, h / 2 - 10] + rng.normal(0, 1, (n_true, 2))
+    xb[n_true:] = rng.uniform([0, 0], [w, h], (n_false, 2))
+    truth = np.arange(n_true + n_false) < n_true
+    return xa, xb, truth
+
+
+def test_gms_keeps_a_planted_consistent_set_and_drops_random_matches():
+    from signatures.pointfeatures import gms_filter
+
+    xa, xb, truth = _planted()
+    keep = gms_filter(xa, xb, (640, 480), (640, 480))
+    assert keep[truth].mean() > 0.9, keep[truth].mean()
+    assert keep[~truth].mean() < 0.1, keep[~truth].mean()
+    # no support without neighbours: random matches alone are all dropped
+    assert not gms_filter(xa[~truth], xb[~truth], (640, 480), (640, 480)).any()
+
+
+@pytest.mark.parametrize("filter", ["gms", "dapc"])
+def test_match_filters_keep_planted_matches_and_drop_random_ones(filter):
+    """Through :func:`match`: the planted features' descriptors are near copies, the others random."""
+    from signatures.pointfeatures import PointFeatures, match
+
+    rng = np.random.default_rng(1)
+    xa, xb, truth = _planted(seed=1)
+    n = len(xa)
+    da = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    db = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    flip = rng.random((int(truth.sum()), 32 * 8)) < 0.05          # 5 % of the bits differ
+    db[truth] = np.packbits(np.unpackbits(da[truth], axis=1) ^ flip, axis=1)
+    z = np.zeros(n, np.float32)
+
+    def feats(xy, d):
+        return PointFeatures("orb", xy.astype(np.float32), z, z, z, np.zeros(n, np.int64), d, (480, 640))
+
+    a, b = feats(xa, da), feats(xb, db)
+    m = match(a, b, filter=filter, mutual=True, dapc_over="mutual" if filter == "dapc" else "all")
+    correct = truth[m.query] & (m.train == m.query)
+    assert correct.sum() > 0.9 * truth.sum()
+    assert (~correct).sum() < 0.05 * len(m), (~correct).sum()

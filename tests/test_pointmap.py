@@ -186,12 +186,12 @@ def test_dapc_keeps_mutual_matches_below_second_minus_mean_gap():
     # map a = 0, 10, 20, 11; live b = 1, 12, 25, 100 (distances are |a - b|)
     # a1's nearest is b1 (2), but b1's nearest is a3 (1): a1 is not a mutual match.
     mapf, live = _feats([0, 10, 20, 11]), _feats([1, 12, 25, 100])
-    m = match_to_map(live, mapf)
+    m = match_to_map(live, mapf, "dapc")
     # mutual pairs: a0-b0 (d1 1, d2 12), a2-b2 (5, 8), a3-b1 (1, 10): mean gap (11 + 3 + 9) / 3 = 23/3
     # keep d1 < d2 - 23/3:  a0: 1 < 4.33 yes;  a2: 5 < 0.33 no;  a3: 1 < 2.33 yes
     assert sorted(zip(m.query.tolist(), m.train.tolist())) == [(0, 0), (3, 1)]
     # Lowe's ratio would keep the ambiguous a2 (5 < 0.8 * 8): DAPC is stricter here
-    r = match_to_map(live, mapf, filter="ratio", ratio=0.8)
+    r = match_to_map(live, mapf, "ratio", ratio=0.8)
     assert sorted(r.query.tolist()) == [0, 2, 3]
 
 
@@ -204,7 +204,7 @@ def test_dapc_matches_an_independent_implementation():
     mapf.descriptors = mapd
     livef = _feats(np.zeros(200))
     livef.descriptors = live
-    m = match_to_map(livef, mapf)
+    m = match_to_map(livef, mapf, "dapc")
     D = np.linalg.norm(mapd[:, None, :].astype(float) - live[None].astype(float), axis=2)
     nn = D.argmin(axis=1)
     srt = np.sort(D, axis=1)
@@ -305,3 +305,36 @@ def test_add_to_map_gives_an_existing_map_point_features(tmp_path, world):
     other = SurveyRun(**{**run.__dict__, "name": "other"})
     with pytest.raises(ValueError, match="reference run 'ref'"):
         add_to_map(tmp_path / "m", other, progress=False)
+
+
+@pytest.mark.parametrize("kind", ["orb", "sift"])
+def test_all_point_map_retrieves_the_best_keyframe_and_localises(tmp_path, world, keyframe_map, kind):
+    """``orb-all`` / ``sift-all``: keyframes from two runs (the second 12 m further on, in its own
+    frame, moved into the place frame); a live image near the second is matched to it."""
+    from mapping.pointmap import combine_keyframe_maps
+
+    T_p1 = vehicle_pose(12.0, 0.5, np.radians(3.0))       # second keyframe in the place frame
+    key1 = render(camera_pose(T_p1), world)[0]
+    imgs = [render(camera_pose(T_p1 @ vehicle_pose(x)), world)[0] for x in BASELINES]
+    pts1, _ = triangulate_keyframe(key1, imgs, np.stack([vehicle_pose(x) for x in BASELINES]), CAMERA, T_VC)
+    ref = keyframe_map[0]
+    points = {**ref, **combine_keyframe_maps([ref, pts1], [np.eye(4), T_p1])}
+    w = MapWriter(tmp_path / "m", CAMERA, T_VC, {})
+    empty = dict(bank_arrays={}, landmarks=np.zeros((0, 3)), covariances=np.zeros((0, 3, 3)),
+                 classifier_ids=np.zeros(0, int))
+    w.write_place(0, PlaceData(**empty, points=points))
+    w.finalise([{"index": 0, "T_world_place": np.eye(4), "neighbours": []}])
+    store = MapStore.open(tmp_path / "m")
+    method = make_method(f"{kind}-all", store, CAMERA, T_VC)
+    assert method.name == f"{kind}-all" and method.method_config()["point_map"] == "all"
+    T_pv = vehicle_pose(14.0, 0.3, np.radians(1.0))
+    live, _ = render(camera_pose(T_pv), world)
+    P = np.diag([0.01, 0.01, 0.03, 1.0, 1.0, 0.3]) ** 2
+    prior = MotionPrior(0.0, T_pv @ pose_exp([0.005, -0.005, 0.02, 0.5, -0.4, 0.1]), P, 0, np.eye(4), None,
+                        False, 0.0)
+    obs = method.detect(live, 0, prior)
+    assert obs.extra["keyframe"] == 1 and obs.extra["gated"]
+    m = method.solve(obs, 0, prior)
+    assert m.constraint is not None, m.reason
+    err = invert(T_pv) @ m.constraint.T_world_vehicle
+    assert np.linalg.norm(err[:3, 3]) < 0.2

@@ -31,3 +31,34 @@ def test_prepared_frame_gives_the_same_observation_and_counts_its_time(point_sto
     np.testing.assert_array_equal(ma.constraint.T_world_vehicle, mb.constraint.T_world_vehicle)
     with pytest.raises(ValueError, match="camera"):
         method.prepare(live[:100])
+
+
+def test_command_line_method_options():
+    from localiser.replay import method_options
+
+    assert method_options("orb") == {}
+    assert method_options("sift", match="gms", point_map="all", prior_gating=False) == \
+        {"match": "gms", "point_map": "all", "prior_gating": False}
+    assert method_options("signatures", prior_gating=False) == {"prior_gating": False}
+    with pytest.raises(ValueError, match="--match"):
+        method_options("signatures", match="dapc")
+    with pytest.raises(ValueError, match="contradicts"):
+        method_options("orb-all", point_map="reference")
+
+
+def test_window_mask_equals_the_brute_force_test():
+    from localiser.pointmethod import window_mask
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform([0, 0], [640, 480], (700, 2)).astype(np.float32)
+    c = rng.uniform([0, 0], [640, 480], (300, 2))
+    r = rng.uniform(5, 60, (300, 2))
+    win = np.column_stack([c - r, c + r])
+    win[:10] = np.nan                                  # too wide: every point
+    ok = rng.random(300) > 0.1                         # unsearchable: none
+    x, y = xy[:, 0].astype(float), xy[:, 1].astype(float)
+    with np.errstate(invalid="ignore"):
+        brute = (x >= win[:, :1]) & (x <= win[:, 2:3]) & (y >= win[:, 1:2]) & (y <= win[:, 3:4])
+    brute[:10] = True
+    brute[~ok] = False
+    assert np.array_equal(window_mask(win, ok, xy), brute)

@@ -260,3 +260,16 @@ def test_tiny_world_full_rate_default_mining(tmp_path_factory, tmp_path):
     rt = localise(map_root, live.root, tmp_path / "rt", realtime=True, speed=2.0, progress=False)
     assert rt["failures"] == 0 and rt["lateral_error_map_m"]["median"] < 0.5
     assert m["realtime_factor"] > 1.0
+
+
+@pytest.mark.parametrize("method", ["orb", "sift"])
+def test_tiny_world_point_features_localise_the_like_for_like_run(tiny_fast, tmp_path, method):
+    """The baselines work where they should: the held-out sunny run against a sunny reference map."""
+    map_root, live = tiny_fast
+    m = localise(map_root, live.root, tmp_path / method, method=method, every=1, progress=False, figure=False)
+    assert m["method"] == method
+    assert m["failures"] == 0, m
+    assert m["localised_fraction"] >= 0.8, m
+    cfg = m["method_config"]
+    assert cfg["point_map"] == "reference" and cfg["match"] == "ratio" and cfg["prior_gating"] is True
+    assert cfg["n_features"] == 2000 and cfg["min_inliers"] >= 12

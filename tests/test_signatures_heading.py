@@ -64,3 +64,18 @@ def test_stromovka_error_rate_target(grief_root):
     truth = np.array([ds.truth(p) for p in pairs])
     errors = int(np.sum(~(np.abs(np.array(out) - truth) < 20)))
     assert errors <= 3, f"{errors} of {len(pairs)} pairs wrong"
+
+
+def test_one_configuration_with_a_rule_on_training_data_only():
+    """No per-data-set settings: a bank's voting settings depend only on how many real training
+    appearances it was mined from (augmented copies do not count)."""
+    from signatures import heading
+
+    assert not hasattr(heading, "sequence_overrides")
+    cfg = dict(heading.default_config)
+    many = heading.bank_config(cfg, 11)          # e.g. stromovka: 11 training sessions
+    one = heading.bank_config(cfg, 1)            # e.g. season: one summer image (+ augmented copies)
+    assert many["calibrated"] and many["min_prob"] == cfg["min_prob"] and many["prob_weight"] == cfg["prob_weight"]
+    assert not one["calibrated"] and one["min_prob"] == 0.0 and one["prob_weight"] == 0.0
+    assert {k: v for k, v in one.items() if k not in ("min_prob", "prob_weight", "calibrated")} == \
+        {k: v for k, v in many.items() if k not in ("min_prob", "prob_weight", "calibrated")}

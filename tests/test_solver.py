@@ -203,3 +203,24 @@ def test_solve_is_fast_enough():
     for q in probs:
         solve(**q)
     assert (time.perf_counter() - t0) / len(probs) < 0.03
+
+
+@pytest.mark.parametrize("estimator", ["poselib", "pycolmap"])
+def test_robust_absolute_pose_recovers_a_known_pose_with_70_percent_outliers(estimator):
+    from localiser.absolute_pose import estimate
+    from surveys.geometry import invert
+
+    p = synthetic_problem(200, outlier_fraction=0.7, seed=21, landmark_sigma=0.05)
+    r = estimate(p["uv"], p["landmarks"], p["camera"], {"estimator": estimator})
+    assert r.ok
+    t, rot = pose_error(p["T_true"], invert(p["T_vehicle_camera"] @ r.T_cam_place))
+    assert t < 0.2 and rot < 0.3, (t, rot)
+    # the inliers are the planted correspondences: none of the outliers, nearly all of the others
+    assert not (r.inliers & p["outliers"]).any()
+    assert (r.inliers & ~p["outliers"]).sum() >= 0.9 * (~p["outliers"]).sum()
+    # and through the whole point-feature solver, which gates on an absolute inlier count
+    res = solve_pnp_prior(p["uv"], p["landmarks"], p["camera"], p["T_vehicle_camera"],
+                          config={"min_inliers": 12, "min_inlier_fraction": 0.0},
+                          pnp_config={"estimator": estimator})
+    assert res.ok, res.reason
+    assert pose_error(p["T_true"], res.T_place_vehicle)[0] < 0.2

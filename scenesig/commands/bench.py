@@ -26,6 +26,7 @@ BENCHMARKS = {
     "kitti-drive": ("kitti_drive", "KITTI snippet end to end: camera-2 map; camera 3, darkened camera 3 localised."),
     "strict_decode": ("strict_decode", "Cost per VGA frame and catch rate of strict image decoding."),
     "aerial": ("aerial", "Monte-Carlo UAV-to-satellite-map matching (MRSM-CC and baselines)."),
+    "absolute-pose": ("absolute_pose", "Robust absolute pose (poselib, pycolmap, OpenCV) on synthetic matches."),
 }
 
 

@@ -5,8 +5,9 @@ import json
 
 from ._types import positive_int
 
-#: the localisation methods of :data:`localiser.pipeline.METHODS`
-METHODS = ("signatures", "orb", "sift")
+#: the localisation methods: scene signatures and the point-feature baselines (``-all``: keyframes from
+#: every training run)
+METHODS = ("signatures", "orb", "sift", "orb-all", "sift-all")
 
 
 def register(groups):
@@ -15,20 +16,32 @@ def register(groups):
     p.add_argument("map", help="map folder")
     p.add_argument("run", help="survey run to replay")
     p.add_argument("--method", choices=METHODS, default="signatures")
+    p.add_argument("--match", choices=("ratio", "dapc", "gms"), default=None,
+                   help="point features: mutual NN + ratio 0.8 (default), DAPC, or GMS")
+    p.add_argument("--point-map", choices=("reference", "all"), default=None,
+                   help="point features: the reference run's keyframe per place (orb, sift) or one per "
+                        "training run (orb-all, sift-all)")
+    p.add_argument("--no-prior-gating", action="store_true",
+                   help="match / search the whole image instead of around the odometry prior's predictions")
     p.add_argument("--out", required=True, help="output folder")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--every", type=positive_int, default=4, help="detector on every N-th frame (deterministic)")
     mode.add_argument("--realtime", action="store_true", help="threads and queues, stale frames dropped")
     p.add_argument("--speed", type=float, default=1.0,
                    help="with --realtime: replay speed as a multiple of the recorded rate (default 1)")
-    p.set_defaults(_run=run)
+    p.set_defaults(_run=run, _parser=p)
 
 
 def run(args) -> int:
-    from localiser.replay import localise
+    from localiser.replay import localise, method_options
 
+    try:
+        opts = method_options(args.method, args.match, args.point_map, not args.no_prior_gating)
+    except ValueError as exc:
+        args._parser.error(str(exc))
     metrics = localise(args.map, args.run, args.out, method=args.method, every=args.every or 4,
-                       realtime=bool(args.realtime), speed=float(args.speed or 1.0))
+                       realtime=bool(args.realtime), speed=float(args.speed or 1.0),
+                       config={"method": opts} if opts else None)
     keys = ("method", "run", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
             "blind_fraction_over_20m", "realtime_factor", "frames_corrupt", "frames_dropped")
     print(json.dumps({k: metrics[k] for k in keys if k in metrics}, indent=1))
