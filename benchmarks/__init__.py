@@ -1,1 +1,5 @@
-"""Benchmark scripts that print JSON (``scenesig bench NAME``); nothing in the library imports them."""
+"""Benchmark scripts, one module each with ``main(argv) -> int`` printing JSON (as scikit-learn keeps them).
+
+Run them as ``scenesig bench NAME ARGS...`` (the registry is :data:`scenesig.commands.bench.BENCHMARKS`).
+Benchmarks may import any package; nothing imports ``benchmarks``.
+"""

@@ -96,7 +96,7 @@ def main(argv=None) -> int:
             images.append(im)
         offsets, source = None, f"{len(images)} files"
     else:
-        from signatures.speed_bench import place_images
+        from benchmarks.speed import place_images
         images, offsets, source = place_images()
     res = {"images": source, **profile_mining(images, offsets, args.shapes)}
     text = json.dumps(res, indent=1)
