@@ -71,9 +71,9 @@ class StageTimer:
         try:
             for owner, attr, stage in targets:
                 orig = owner.__dict__[attr] if isinstance(owner, type) else getattr(owner, attr)
-                fn = orig.__func__ if isinstance(orig, staticmethod) else orig
-                wrapped = self.wrap(fn, stage)
-                setattr(owner, attr, staticmethod(wrapped) if isinstance(orig, staticmethod) else wrapped)
+                kind = type(orig) if isinstance(orig, (staticmethod, classmethod)) else None
+                wrapped = self.wrap(orig.__func__ if kind else orig, stage)
+                setattr(owner, attr, kind(wrapped) if kind else wrapped)
                 saved.append((owner, attr, orig))
             yield self
         finally:

@@ -351,8 +351,8 @@ def _negatives(pd: _Place, box, k_n, fh, fw, n_per_image, rng):
             # per-column terms (the same floating-point operations per window as the per-window
             # formulas), and the IoU only where the overlap is not zero.
             ok = np.ones((len(y), len(x)), bool)
-            ix = np.clip(np.minimum(bx1, ref[2]) - np.maximum(bx0, ref[0]), 0, None)
-            iy = np.clip(np.minimum(by1, ref[3]) - np.maximum(by0, ref[1]), 0, None)
+            ix = np.maximum(np.minimum(bx1, ref[2]) - np.maximum(bx0, ref[0]), 0.0)
+            iy = np.maximum(np.minimum(by1, ref[3]) - np.maximum(by0, ref[1]), 0.0)
             cs, rs = np.flatnonzero(ix > 0), np.flatnonzero(iy > 0)
             if len(cs) and len(rs):
                 # Windows are ordered along each axis, so those overlapping the box form a block.
