@@ -34,6 +34,7 @@ from typing import Callable
 import numpy as np
 
 from mapping.store import MapStore
+from surveys.settings import merge_settings
 from surveys.geometry import Camera, invert
 
 from .detector import Detector, Observation
@@ -67,13 +68,7 @@ default_config = {
 
 
 def _merge(config: dict | None, defaults: dict, what: str) -> dict:
-    cfg = dict(defaults)
-    if config:
-        unknown = set(config) - set(defaults)
-        if unknown:
-            raise ValueError(f"unknown {what} option(s) {sorted(unknown)}; known: {sorted(defaults)}")
-        cfg.update(config)
-    return cfg
+    return merge_settings(defaults, config, what)
 
 
 def odometry_covariance(T_increment: np.ndarray, sigma_per_sqrt_m, sigma_floor) -> np.ndarray:
@@ -261,10 +256,7 @@ def make_method(name: str, store: MapStore, camera: Camera, T_vehicle_camera, co
     if name not in _METHODS and name in _LAZY:
         import importlib
 
-        try:
-            importlib.import_module(_LAZY[name])
-        except ImportError as exc:
-            raise ValueError(f"method {name!r} needs module {_LAZY[name]}, which could not be imported: {exc}") from None
+        importlib.import_module(_LAZY[name])
     if name not in _METHODS:
         raise ValueError(f"unknown method {name!r}; available: {available_methods()}")
     return _METHODS[name](store, camera, T_vehicle_camera, config)

@@ -33,6 +33,7 @@ import numpy as np
 from mapping.pointmap import keypoint_sigma, point_covariances, point_features
 from mapping.store import MapStore
 from signatures.pointfeatures import PointFeatures, extract, match
+from surveys.settings import merge_settings
 from surveys.geometry import Camera
 
 from .pipeline import Measurement, MotionPrior, WeakLocaliser, register_method
@@ -60,11 +61,7 @@ default_config = {
 
 
 def _merge(config: dict | None) -> dict:
-    cfg = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
-    for k, v in (config or {}).items():
-        if k not in cfg:
-            raise ValueError(f"unknown point-feature method option {k!r}; known: {sorted(cfg)}")
-        cfg[k] = {**cfg[k], **v} if isinstance(cfg[k], dict) else v
+    cfg = merge_settings(default_config, config, "point-feature method", open=("features", "solver", "pnp"))
     if cfg["filter"] not in ("dapc", "ratio", "none"):
         raise ValueError(f"filter must be 'dapc', 'ratio' or 'none', got {cfg['filter']!r}")
     unknown = set(cfg["solver"]) - set(solver_default)

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from surveys.settings import merge_settings
 from surveys.geometry import invert
 from surveys.run import SurveyRun
 from signatures.mining import mine_place
@@ -46,7 +47,8 @@ from mapping import georef as georef_mod
 from mapping import places as places_mod
 from mapping.pointmap import build_point_features
 from mapping.refine import Detections, REASONS, refine_landmarks
-from mapping.store import MapWriter, PlaceData, atomic_write_bytes, decode_place, encode_keyframe, place_file_name
+from mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
+from surveys.io import atomic_write_bytes
 
 __all__ = ["default_config", "build_map", "build_place", "load_config"]
 
@@ -68,12 +70,9 @@ default_config = {
 
 
 def _merge(config):
-    cfg = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
-    for k, v in (config or {}).items():
-        if k not in cfg:
-            raise ValueError(f"unknown build option {k!r}; known: {sorted(cfg)}")
-        cfg[k] = {**cfg[k], **v} if isinstance(cfg[k], dict) else v
-    return cfg
+    # every sub-dict is passed on whole to its stage, which checks it
+    return merge_settings(default_config, config, "build",
+                          open=tuple(k for k, v in default_config.items() if isinstance(v, dict)))
 
 
 def _subsample(window: np.ndarray, centre: int, n: int, positions: np.ndarray | None = None) -> np.ndarray:
@@ -115,10 +114,8 @@ def _true_depths(run: SurveyRun, frame: int, image: np.ndarray, boxes: np.ndarra
     """
     import cv2
 
-    try:
-        from surveys.sim.truth import depth_image
-    except ImportError:
-        return None
+    from surveys.sim.truth import depth_image
+
     depth = depth_image(run, frame)
     if depth is None:
         return None

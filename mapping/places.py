@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from surveys.settings import merge_settings
 from surveys.geometry import interpolate_poses, invert, yaw_of
 from surveys.run import SurveyRun
 
@@ -77,7 +78,7 @@ def _frame_poses(run: SurveyRun) -> np.ndarray:
 
 def define_places(reference: SurveyRun, config: dict | None = None) -> list[Place]:
     """Places every ``spacing_m`` along the reference run's INS trajectory (first one after half a spacing)."""
-    cfg = {**default_config, **(config or {})}
+    cfg = merge_settings(default_config, config, "places")
     poses = _frame_poses(reference)
     s = arc_length(poses[:, :3, 3])
     spacing = cfg["spacing_m"]
@@ -95,7 +96,7 @@ def define_places(reference: SurveyRun, config: dict | None = None) -> list[Plac
 
 def training_views(place: Place, runs: list[SurveyRun], config: dict | None = None) -> list[TrainingView]:
     """For each run that passes the place, its nearest frame (position and heading) and ±window frames."""
-    cfg = {**default_config, **(config or {})}
+    cfg = merge_settings(default_config, config, "places")
     views = []
     p_xy = place.T_world_place[:2, 3]
     p_yaw = yaw_of(place.T_world_place)

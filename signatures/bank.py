@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from surveys.settings import merge_settings
+
 from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
 from signatures.hog import level_scale, level_size, window_cell
 
@@ -351,7 +353,7 @@ class Bank:
         -------
         Detections
         """
-        cfg = {**default_config, **(config or {})}
+        cfg = merge_settings(default_config, config, "detection")
         n = len(self)
         if isinstance(image, HogPyramid):
             pyr = image
@@ -627,37 +629,3 @@ def _pick_best(classifiers, pyr: HogPyramid, maps, refine: bool) -> Detections:
         res["prob"][found, 0] = _sigmoid(cal[found, 0] * s + cal[found, 1])
     return Detections(**res)
 
-
-def main(argv=None) -> int:
-    """``python -m signatures.bank BANK.npz IMAGE``: detect a stored bank, print JSON."""
-    import argparse
-    import json
-
-    import cv2
-
-    from surveys.errors import DataError
-
-    ap = argparse.ArgumentParser(description="Detect a stored bank (.npz from Bank.to_arrays) "
-                                             "in an image and print the detections as JSON.")
-    ap.add_argument("bank", help=".npz file holding Bank.to_arrays()")
-    ap.add_argument("image")
-    ap.add_argument("--top-n", type=int, default=1)
-    args = ap.parse_args(argv)
-    try:
-        with np.load(args.bank, allow_pickle=False) as z:
-            bank = Bank.from_arrays(dict(z))
-    except (OSError, ValueError) as e:
-        raise DataError(args.bank, f"not a bank file: {e}") from None
-    img = cv2.imread(args.image, cv2.IMREAD_COLOR)
-    if img is None:
-        raise DataError(args.image, "cannot read or decode image")
-    det = bank.detect(img, top_n=args.top_n)
-    rows = [{"classifier": i, "x": det.x[i].tolist(), "y": det.y[i].tolist(),
-             "scale": det.scale[i].tolist(), "score": det.score[i].tolist(),
-             "prob": det.prob[i].tolist()} for i in range(len(det))]
-    print(json.dumps(rows))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io import atomic_write_text
 from ..run import SurveyRun, write_run
 from .conditions import CONDITIONS
 from .motion import gps_fixes, ins, odometry, plan_drive
@@ -155,7 +156,7 @@ def simulate(out, preset: str = "demo", seed: int = 0, runs: list[str] | None = 
     world = _world(preset, seed)
     desc = world.to_json()
     desc["runs"] = [{"name": n, "conditions": [c]} for n, c in zip(names, conditions)]
-    (out / "world.json").write_text(json.dumps(desc, indent=1))
+    atomic_write_text(out / "world.json", json.dumps(desc, indent=1))
     # frame counts up front (drives are cheap) for an honest progress bar
     total = 0
     for i in range(len(conditions)):
@@ -187,5 +188,5 @@ def simulate(out, preset: str = "demo", seed: int = 0, runs: list[str] | None = 
                "frames_per_second": round(frames / seconds, 2) if seconds > 0 else None,
                "preset": preset, "seed": int(seed), "camera_hz": float(camera_hz), "jobs": int(jobs),
                "image_size": list(world.image_size)}
-    (out / "simulate_summary.json").write_text(json.dumps(summary, indent=1))
+    atomic_write_text(out / "simulate_summary.json", json.dumps(summary, indent=1))
     return summary
