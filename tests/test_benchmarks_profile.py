@@ -53,7 +53,7 @@ def test_stage_timer_is_exclusive_and_restores(monkeypatch):
 
 
 def test_profile_mining_reports_the_stages():
-    from signatures.synthetic import synthetic_place
+    from localiser.synthetic import synthetic_place
 
     images, offsets = synthetic_place(4, 128, 96, seed=0)
     res = profile_mining.profile_mining(images, offsets, shapes=6)

@@ -195,11 +195,12 @@ def test_bad_input_is_named():
 
 def test_solve_is_fast_enough():
     # Target: a few ms for ~50 detections (measured ~2.5 ms on 2 cores); fail only if 10x off.
+    # CPU time of this thread, not wall time: on a loaded machine the wall time measures the load.
     import time
 
     probs = [inputs(synthetic_problem(50, 0.2, seed=s)) for s in range(10)]
     solve(**probs[0])
-    t0 = time.perf_counter()
+    t0 = time.thread_time()
     for q in probs:
         solve(**q)
-    assert (time.perf_counter() - t0) / len(probs) < 0.03
+    assert (time.thread_time() - t0) / len(probs) < 0.03
