@@ -1,4 +1,4 @@
-"""Detector block of the online localiser (paper 003, §3.3.1-3.3.2, Fig. 6).
+"""Detector block of the online localiser (McManus et al. 2015, §3.3.1-3.3.2, Fig. 6).
 
 Runs the signature bank of the current place (the localiser says which) on a live image and turns
 the firings into measurements for the eq. 10 solver:

@@ -1,4 +1,4 @@
-"""The online localisation pipeline (paper 003, §3.3, Fig. 6): weak localisers and the localiser block.
+"""The online localisation pipeline (McManus et al. 2015, §3.3, Fig. 6): weak localisers and the localiser block.
 
 Three blocks, as in the paper's Fig. 6:
 
@@ -13,11 +13,11 @@ Three blocks, as in the paper's Fig. 6:
   and applies the failure rule: more than 20 m on dead reckoning since the last localisation -> reset
   from the oracle (the run's INS/GPS) and count a failure.
 
-A *weak localiser* (paper §3.3.1) is any method that, given a live image, a place and a motion prior,
+A *weak localiser* (McManus et al. 2015, §3.3.1) is any method that, given a live image, a place and a motion prior,
 returns a localisation constraint or nothing.  :class:`WeakLocaliser` is that interface, split into
 ``detect`` (image -> observation, the detector thread) and ``solve`` (observation -> :class:`Measurement`,
 the solver thread) so the real-time replay can run them concurrently; ``measure`` chains them.
-Scene signatures are :class:`SignatureLocaliser`; point features (ORB / SIFT, issue 6) plug in as
+Scene signatures are :class:`SignatureLocaliser`; point features (ORB / SIFT) plug in as
 another implementation registered with :func:`register_method`, and everything else (replay,
 failure rule, outputs, metrics) is shared.
 
@@ -60,7 +60,7 @@ default_config = {
     # localisations the marginal becomes tighter than the map itself is accurate, and the solver
     # would then gate good localisations as "inconsistent with the prior".
     "prior_floor_sigma": [0.003, 0.003, 0.005, 0.2, 0.2, 0.05],
-    "failure_distance_m": 20.0,      # paper §4.3
+    "failure_distance_m": 20.0,      # McManus et al. 2015, §4.3
     "lost_after_m": 10.0,            # beyond this distance blind the detector searches the whole image
     "max_heading_diff_deg": 90.0,    # a place passed the other way round is not "nearest"
     "posegraph": {},                 # overrides of localiser.posegraph.default_config
@@ -140,7 +140,7 @@ class Measurement:
 # the method interface
 # ------------------------------------------------------------------------------------------------
 class WeakLocaliser:
-    """Interface of a weak localiser (paper §3.3.1): image + place + motion prior -> constraint or none.
+    """Interface of a weak localiser (McManus et al. 2015, §3.3.1): image + place + motion prior -> constraint or none.
 
     Implement either :meth:`measure` alone (a single-stage method: then :meth:`detect` does all the
     work and :meth:`solve` passes its answer on), or :meth:`detect` and :meth:`solve` (two stages,

@@ -1,4 +1,4 @@
-"""Sliding-window pose graph of the localiser (paper 003, §3.3.2, Fig. 6).
+"""Sliding-window pose graph of the localiser (McManus et al. 2015, §3.3.2, Fig. 6).
 
 The graph holds vehicle poses ``T_world_vehicle`` at *keyframes* over the last ``window_seconds``
 and three kinds of constraint: (i) odometry between consecutive keyframes, (ii) sparse
@@ -45,7 +45,7 @@ default_config = {
                                   # do not see gets σ = 1000 m / rad instead of a singular system
     "relinearize_threshold": 0.01,
     "extra_iterations": 1,        # extra iSAM2 iterations after a localisation (it can move the window)
-    "failure_distance_m": 20.0,   # paper §4.3: more than 20 m blind is a failure
+    "failure_distance_m": 20.0,   # McManus et al. 2015, §4.3: more than 20 m blind is a failure
 }
 
 

@@ -1,6 +1,6 @@
 """Replay a survey run through the online localiser: ``scenesig localise MAP RUN --out DIR``.
 
-Two modes (issue 5 §1):
+Two modes:
 
 * **deterministic** (default): images and odometry are fed in timestamp order on one thread; the
   detector runs on every ``every``-th frame (4: 5 Hz on a 20 Hz camera, as in the paper) and the

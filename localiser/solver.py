@@ -1,4 +1,4 @@
-"""Pose of the vehicle relative to a place from 2D-3D correspondences and a motion prior (paper 003, eq. 10).
+"""Pose of the vehicle relative to a place from 2D-3D correspondences and a motion prior (McManus et al. 2015, eq. 10).
 
 The solver minimises
 
@@ -35,7 +35,7 @@ solution) and the checks: a compact numpy LM on the 6-dof tangent (default: ~2.5
 detections, no allocations beyond a few (N,2,6) arrays) and a GTSAM factor graph
 (``GenericProjectionFactorCal3_S2`` with landmarks as variables held by their map priors, Huber noise
 models, ``LevenbergMarquardtOptimizer``; ~11 ms), kept as an independent reference that the tests
-compare against, and for the benchmark (``scenesig bench solver``).  The same code serves point features (issue 6) via
+compare against, and for the benchmark (``scenesig bench solver``).  The same code serves point features via
 :func:`solve_pnp_prior`, which initialises with OpenCV's PnP + RANSAC.
 """
 from __future__ import annotations

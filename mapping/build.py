@@ -1,4 +1,4 @@
-"""Map building (paper 003 §3.1-3.2.1): survey runs -> places -> scene-signature banks -> landmarks -> map.
+"""Map building (McManus et al. 2015, §3.1-3.2.1): survey runs -> places -> scene-signature banks -> landmarks -> map.
 
 For each place (every 10 m along the reference run):
 
@@ -249,7 +249,7 @@ def _build_place(place, views, negatives, config):
         bank_arrays=kept_bank.to_arrays(), landmarks=landmarks, covariances=covs,
         classifier_ids=np.arange(len(keep), dtype=np.int64),
         keyframe=encode_keyframe(images[0], width=cfg["keyframe_width"]),
-        # the point-feature baseline's keyframe features and 3D points (issue 6) live beside the bank
+        # the point-feature baseline's keyframe features and 3D points live beside the bank
         points=build_point_features(ref, camera, T_vc, cfg["points"]),
         meta={"reference_run": ref.run.name, "reference_frame": int(ref.frame),
               "training_runs": [v.run.name for v in views], "detections_at_reference": [[float(v) if np.isfinite(v) else None for v in b] for b in boxes],

@@ -1,4 +1,4 @@
-"""Places every 10 m along the reference run, and each place's training set (paper §3.2, §4.1).
+"""Places every 10 m along the reference run, and each place's training set (McManus et al. 2015, §3.2, §4.1).
 
 A *place* ``π_p`` is a pose on the reference ("map") run's INS trajectory; places are spaced
 ``spacing`` metres apart in distance travelled.  Its frame is the reference vehicle pose there,
@@ -23,7 +23,7 @@ from surveys.run import SurveyRun
 __all__ = ["Place", "TrainingView", "define_places", "training_views", "default_config", "arc_length"]
 
 default_config = {
-    "spacing_m": 10.0,          # paper §4.1
+    "spacing_m": 10.0,          # McManus et al. 2015, §4.1
     "window_m": 10.0,           # refinement window: ±10 m (paper footnote 5)
     "max_position_error_m": 8.0,  # a run further than this from a place (INS) does not see it
     "max_heading_error_deg": 30.0,

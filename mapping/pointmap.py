@@ -1,4 +1,4 @@
-"""Point-feature map of a place (the ORB / SIFT baselines of paper 003 §4): keyframe features with 3D points.
+"""Point-feature map of a place (the ORB / SIFT baselines of McManus et al. 2015, §4): keyframe features with 3D points.
 
 The point-feature localiser the paper compares against matches the live image to a *map image* and
 solves for the pose from the 2D-3D correspondences.  Its map, per place:

@@ -1,4 +1,4 @@
-"""Landmark refinement for scene signatures (paper 003, section 3.2.1, eqs. 1-9).
+"""Landmark refinement for scene signatures (McManus et al. 2015, §3.2.1, eqs. 1-9).
 
 Every classifier that survived mining is fired over a window of frames around its place (about +-10 m).
 This module turns those detections into a motion-consistent 3D landmark, or rejects the classifier:

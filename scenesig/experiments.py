@@ -49,7 +49,7 @@ __all__ = ["default_config", "MatchingResult", "aligned_frame", "signature_match
            "frame_distances", "ins_errors", "speed", "dead_reckoning", "summary_rows", "find_runs"]
 
 default_config = {
-    "delta_px": 15.0,               # paper §4.2: a match agrees when within 15 px in both images
+    "delta_px": 15.0,               # McManus et al. 2015, §4.2: a match agrees when within 15 px in both images
     "methods": ["signatures", "orb", "sift"],
     "max_frame_distance_m": 5.0,    # a run whose nearest frame is further than this does not pass the place
     "max_heading_deg": 30.0,
@@ -57,7 +57,6 @@ default_config = {
     "heat_places": 8,               # places shown in the heat-map figure (evenly spread) + the average
     "point": {},                    # overrides of localiser.pointmethod.default_config
 }
-
 
 
 def _merge(config: dict | None) -> dict:

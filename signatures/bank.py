@@ -1,6 +1,6 @@
 """A bank of scene-signature classifiers for one place, and one-pass detection of the whole bank.
 
-A :class:`Classifier` is a linear filter over a window of FHOG cells (paper §3.2: one SVM per
+A :class:`Classifier` is a linear filter over a window of FHOG cells (McManus et al. 2015, §3.2: one SVM per
 scene signature) with the shape it was mined from, its nominal position and scale, and the
 score-to-probability calibration lambda of eq. (5).  A :class:`Bank` holds the classifiers of a
 place, stores to and from plain arrays (the map store writes that dict), and detects all of them in

@@ -1,5 +1,5 @@
 """Scene-signature heading estimation on GRIEF data sets (the *signatures* method of the heading
-benchmark, issue §5).
+benchmark).
 
 For a protocol pair (map image i, live image j) of one place the horizontal displacement of the
 scene is estimated from a bank of scene signatures of that place that never saw image j:

@@ -1,4 +1,4 @@
-"""Iterative discriminative clustering of candidate shapes for one place (paper §3.2, Fig. 3).
+"""Iterative discriminative clustering of candidate shapes for one place (McManus et al. 2015, §3.2, Fig. 3).
 
 For every candidate shape of the fixed template (:mod:`signatures.shapes`):
 

@@ -272,7 +272,7 @@ def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: floa
     filter : {"ratio", "dapc", "none"}
         ``ratio``: keep when ``d1 < ratio * d2`` (Lowe).  ``dapc``: keep when
         ``d1 < d2 - mean(d2 - d1)``, the mean over all of a's 2-NN pairs -- a threshold that adapts
-        to how separable this image pair's descriptors are (seed 002, eq. 6-7).  ``none``: keep
+        to how separable this image pair's descriptors are (M2Det scene-matching paper, §3.4, eqs. 6-7).  ``none``: keep
         every nearest neighbour.
     ratio : float
         Ratio for ``filter="ratio"``.
@@ -280,7 +280,7 @@ def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: floa
         Also require a's feature to be b's feature's nearest neighbour (cross-check).
     dapc_over : {"all", "mutual"}
         Which 2-NN pairs the DAPC mean gap is taken over: all of a's (default), or -- with
-        ``mutual`` -- only the mutual pairs, the order of seed 002's procedure (bidirectional
+        ``mutual`` -- only the mutual pairs, the order of the M2Det scene-matching paper's procedure (§3.4) (bidirectional
         matching first, steps c-e, then the dynamic distance test, step f).
 
     Returns
