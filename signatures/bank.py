@@ -19,6 +19,7 @@ of each level whose features are computed at all.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, field
 
@@ -29,14 +30,36 @@ from surveys.settings import merge_settings
 from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
 from signatures.hog import level_scale, level_size, window_cell
 
-__all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce"]
+__all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce", "limit_blas_threads"]
 
 #: Detection parameters.
 default_config = {
     "scale_search": 1,    # search nominal level +- this many pyramid levels
     "refine": True,       # sub-cell peak refinement (parabola through the 3x3 neighbourhood)
     "nms_iou": 0.3,       # top-N: suppress detections overlapping a better one by more than this
+    # BLAS threads for the filter multiplies (None: leave numpy's setting).  They are small: a second
+    # thread mostly spins -- on two busy cores five times the CPU and the wall time of one thread --
+    # and a fixed count gives the same sums, the same detections, on every machine.
+    "blas_threads": 1,
 }
+
+_BLAS = None
+
+
+def limit_blas_threads(n: int | None):
+    """Context limiting numpy's BLAS to ``n`` threads (no-op for None or without threadpoolctl)."""
+    global _BLAS
+    if n is None:
+        return contextlib.nullcontext()
+    if _BLAS is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+            _BLAS = ThreadpoolController()      # inspecting the loaded libraries costs ~2 ms: once
+        except ImportError:
+            _BLAS = False
+    if _BLAS is False:
+        return contextlib.nullcontext()
+    return _BLAS.limit(limits=int(n), user_api="blas")
 
 
 def _sigmoid(z):
@@ -373,7 +396,8 @@ class Bank:
             levels = [range(max(0, c.level - ss), c.level + ss + 1) for c in self.classifiers]
         elif len(levels) != n:
             raise ValueError(f"levels must list the levels of each of the {n} classifiers")
-        maps = _score_all(self.classifiers, pyr, levels, windows)
+        with limit_blas_threads(cfg["blas_threads"]):
+            maps = _score_all(self.classifiers, pyr, levels, windows)
         return _pick(self.classifiers, pyr, maps, top_n, bool(cfg["refine"]), float(cfg["nms_iou"]))
 
 
