@@ -20,7 +20,6 @@ of each level whose features are computed at all.
 from __future__ import annotations
 
 import contextlib
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -439,11 +438,9 @@ def _range_table(classifiers, levels, geom: dict, cell: int, windows):
         win = np.asarray(windows, dtype=float)[i]
         sx, sy = g[:, 2], g[:, 3]
         ok = ~np.isnan(win).any(axis=1)
-        # window_cell() of both corners (its arithmetic, vectorised); 1e-9 absorbs round-off.
-        ra = (win[:, 1] + 0.5) * sy / cell - 0.5 * fh
-        ca = (win[:, 0] + 0.5) * sx / cell - 0.5 * fw
-        rb = (win[:, 3] + 0.5) * sy / cell - 0.5 * fh
-        cb = (win[:, 2] + 0.5) * sx / cell - 0.5 * fw
+        # window_cell() of both corners, on arrays; 1e-9 absorbs round-off.
+        ra, ca = window_cell(win[:, 0], win[:, 1], (sx, sy), cell, fh, fw)
+        rb, cb = window_cell(win[:, 2], win[:, 3], (sx, sy), cell, fh, fw)
         with np.errstate(invalid="ignore"):
             r0 = np.where(ok, np.maximum(r0, np.ceil(ra - 1e-9)), r0).astype(np.intp)
             r1 = np.where(ok, np.minimum(r1, np.floor(rb + 1e-9)), r1).astype(np.intp)

@@ -97,7 +97,7 @@ def level_scale(k: int | np.ndarray, scales_per_octave: int) -> float | np.ndarr
 def window_cell(x: float, y: float, scale_xy, cell: int, fh: int, fw: int) -> tuple[float, float]:
     """Fractional top-left cell (row, col) of a window of fh x fw cells centred at input pixel (x, y),
     on a level of scale ``scale_xy`` (sx, sy) -- also before the level exists (:meth:`Bank.pyramid`
-    sizes the regions it needs with it)."""
+    sizes the regions it needs with it).  Every argument may also be an array (elementwise)."""
     sx, sy = scale_xy
     return (y + 0.5) * sy / cell - 0.5 * fh, (x + 0.5) * sx / cell - 0.5 * fw
 
