@@ -14,7 +14,7 @@ import threading
 import time
 from collections import defaultdict
 
-__all__ = ["StageTimer"]
+__all__ = ["StageTimer", "emit_json"]
 
 
 class StageTimer:
@@ -91,3 +91,15 @@ class StageTimer:
                 d["cpu_ms_per"] = round(scale * self.cpu_seconds[k] / per, 3)
             out[k] = d
         return out
+
+
+def emit_json(result: dict, path=None) -> None:
+    """Print a benchmark's result as JSON and, with ``path``, write it there atomically."""
+    import json
+
+    from surveys.io import atomic_write_text
+
+    text = json.dumps(result, indent=1)
+    print(text)
+    if path:
+        atomic_write_text(path, text + "\n")

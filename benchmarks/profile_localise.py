@@ -26,9 +26,7 @@ times include waiting for a core and CPU times do not: compare CPU times there.
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 
 __all__ = ["profile_localise", "main"]
 
@@ -92,6 +90,8 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
 
 
 def main(argv=None) -> int:
+    from benchmarks._stages import emit_json
+
     ap = argparse.ArgumentParser(prog="scenesig bench profile_localise", description=__doc__.splitlines()[0])
     ap.add_argument("map", help="map folder")
     ap.add_argument("run", help="survey run folder")
@@ -101,11 +101,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the result JSON here")
     args = ap.parse_args(argv)
     res = profile_localise(args.map, args.run, args.method, args.every, not args.no_prefetch)
-    text = json.dumps(res, indent=1)
-    print(text)
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(text + "\n")
+    emit_json(res, args.json)
     return 0
 
 

@@ -23,14 +23,12 @@ benchmark's place (``surveys.sim.place_views(preset="demo", seed=0, n=31)``, 640
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from benchmarks._stages import StageTimer
+from benchmarks._stages import StageTimer, emit_json
 
 __all__ = ["profile_mining", "main"]
 
@@ -87,23 +85,14 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the result JSON here")
     args = ap.parse_args(argv)
     if args.images:
-        from surveys.errors import DataError
-        images = []
-        for p in args.images:
-            im = cv2.imread(p, cv2.IMREAD_COLOR)
-            if im is None:
-                raise DataError(p, "cannot read or decode image")
-            images.append(im)
+        from benchmarks.mining import read_images
+        images = read_images(args.images)
         offsets, source = None, f"{len(images)} files"
     else:
         from benchmarks.speed import place_images
         images, offsets, source = place_images()
     res = {"images": source, **profile_mining(images, offsets, args.shapes)}
-    text = json.dumps(res, indent=1)
-    print(text)
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(text + "\n")
+    emit_json(res, args.json)
     return 0
 
 
