@@ -12,7 +12,18 @@ import numpy as np
 from signatures.mining import mine_place
 from surveys.errors import DataError
 
-__all__ = ["main"]
+__all__ = ["main", "read_images"]
+
+
+def read_images(paths) -> list:
+    """BGR images from files; DataError naming the first that cannot be read."""
+    imgs = []
+    for p in paths:
+        im = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if im is None:
+            raise DataError(p, "cannot read or decode image")
+        imgs.append(im)
+    return imgs
 
 
 def main(argv=None) -> int:
@@ -23,13 +34,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", help="write the bank arrays to this .npz")
     ap.add_argument("--n-jobs", type=int, default=1)
     args = ap.parse_args(argv)
-    imgs = []
-    for p in args.images:
-        im = cv2.imread(p, cv2.IMREAD_COLOR)
-        if im is None:
-            raise DataError(p, "cannot read or decode image")
-        imgs.append(im)
-    bank, stats = mine_place(imgs, n_jobs=args.n_jobs, progress=True)
+    bank, stats = mine_place(read_images(args.images), n_jobs=args.n_jobs, progress=True)
     if args.out:
         np.savez_compressed(args.out, **bank.to_arrays())
     print(json.dumps(stats.as_dict()))

@@ -7,7 +7,8 @@ seed=0, n=31)``; the JSON's ``images`` names them):
   296 candidate shapes, pyramids included, on **one core** (BLAS, OpenCV and joblib limited to one
   thread);
 * ``detect_ms_per_frame`` -- one-pass detection of banks of 50 and 200 classifiers on a 640x480
-  frame, whole-image search, pyramid included, on **two cores**; the banks are drawn from the
+  frame, whole-image search, pyramid included, on **two cores** (OpenCV on two threads; the filter
+  multiplies on one BLAS thread, the bank's ``blas_threads`` default); the banks are drawn from the
   classifiers mined above (with repetition when fewer survived, so filter sizes and levels are
   realistic).  ``detect_ms_per_frame_windowed`` repeats it with +-40-px search windows, as the
   localiser runs it;
@@ -15,7 +16,10 @@ seed=0, n=31)``; the JSON's ``images`` names them):
   (640x480, one core);
 * ``blas`` -- the BLAS library numpy uses (threadpoolctl).
 
-Timings are medians over repeats.  Run ``scenesig bench speed --json OUT``.
+Timings are medians over repeats.  Wall time on a loaded machine measures the load as much as the
+code, so the JSON also holds the CPU time of the process -- ``train_cpu_seconds_per_place`` and
+``detect_cpu_ms_per_frame`` (mean per detection, both threads summed) -- and ``load_average``;
+compare CPU times between runs made under load.  Run ``scenesig bench speed --json OUT``.
 """
 from __future__ import annotations
 
@@ -88,9 +92,10 @@ def run_speed_bench(n_images: int = 31, repeat: int = 10, seed: int = 0, progres
         with threadpool_limits(limits=1):
             gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
             out["hog_ms_per_level"] = round(median_ms(lambda: hogmod.fhog(gray), repeat * 2), 2)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             bank, stats = mining.mine_place(images, offsets, n_jobs=1, rng=seed, progress=progress)
             out["train_seconds_per_place"] = round(time.perf_counter() - t0, 2)
+            out["train_cpu_seconds_per_place"] = round(time.process_time() - c0, 2)
             out["train_stats"] = {k: v for k, v in stats.as_dict().items() if k != "partitions"}
         if len(bank) == 0:
             raise RuntimeError("no classifier converged on the benchmark place; cannot time "
@@ -105,18 +110,22 @@ def run_speed_bench(n_images: int = 31, repeat: int = 10, seed: int = 0, progres
         # ---------------- two cores: detection
         cv2.setNumThreads(2)
         with threadpool_limits(limits=2):
-            det, detw = {}, {}
+            det, detw, det_cpu = {}, {}, {}
             for n, b in banks.items():
+                c0 = time.process_time()
                 det[str(n)] = round(median_ms(lambda: b.detect(frame), repeat), 2)
+                det_cpu[str(n)] = round(1000.0 * (time.process_time() - c0) / (repeat + 1), 2)
                 nom = np.array([c.nominal_xy for c in b])
                 win = np.concatenate([nom - 40.0, nom + 40.0], axis=1)
                 detw[str(n)] = round(median_ms(lambda: b.detect(frame, windows=win), repeat), 2)
             out["detect_ms_per_frame"] = det
             out["detect_hz"] = {k: round(1000.0 / v, 1) for k, v in det.items()}
             out["detect_ms_per_frame_windowed"] = detw
+            out["detect_cpu_ms_per_frame"] = det_cpu
     finally:
         cv2.setNumThreads(cv_threads)
     out["threads"] = {"train": 1, "detect": 2}
+    out["load_average"] = [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None
     return out
 
 

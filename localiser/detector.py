@@ -38,7 +38,6 @@ run's INS poses (windowed and whole-image) and prints JSON.
 """
 from __future__ import annotations
 
-import contextlib
 import threading
 import time
 from collections import OrderedDict
@@ -49,7 +48,7 @@ import numpy as np
 
 from mapping.refine import default_config as refine_default
 from mapping.store import MapStore, PlaceData
-from signatures.bank import Bank
+from signatures.bank import Bank, limit_blas_threads
 from surveys.validation import check_covariance
 from surveys.settings import merge_settings
 from surveys.geometry import Camera, invert, point_pose_jacobian
@@ -114,25 +113,6 @@ class Observation:
     def empty(cls, place: int, ms: float = 0.0, searched: int = 0, whole_image: bool = False) -> "Observation":
         return cls(place, np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 3)), np.zeros((0, 3, 3)),
                    np.zeros(0, int), np.zeros(0), np.zeros(0), searched, whole_image, ms)
-
-
-_BLAS = None
-
-
-def _blas_threads(n: int | None):
-    """Context limiting numpy's BLAS to ``n`` threads (no-op for None or without threadpoolctl)."""
-    global _BLAS
-    if n is None:
-        return contextlib.nullcontext()
-    if _BLAS is None:
-        try:
-            from threadpoolctl import ThreadpoolController
-            _BLAS = ThreadpoolController()      # inspecting the loaded libraries costs ~2 ms: once
-        except ImportError:
-            _BLAS = False
-    if _BLAS is False:
-        return contextlib.nullcontext()
-    return _BLAS.limit(limits=int(n), user_api="blas")
 
 
 def projection_jacobians(landmarks: np.ndarray, T_place_vehicle: np.ndarray, camera: Camera,
@@ -300,7 +280,7 @@ class Detector:
         T_place_vehicle, P_prior : motion prior and its covariance; without them (or with
             ``whole_image``) every classifier searches the whole image.
         """
-        with _blas_threads(self.config["blas_threads"]):
+        with limit_blas_threads(self.config["blas_threads"]):
             return self._detect(image, place, T_place_vehicle, P_prior, whole_image)
 
     def _detect(self, image, place, T_place_vehicle, P_prior, whole_image) -> Observation:

@@ -132,6 +132,7 @@ class PlaneSnapper:
             raise ValueError("keyframe_poses contain non-finite values")
         self.keyframe_poses = kf
         self._tree = cKDTree(kf[:, :3, 3])
+        self._planes: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}   # a pair's plane, once
 
     def nearest_two(self, position: np.ndarray) -> tuple[int, int]:
         """Indices of the two keyframes nearest to a position (nearest first)."""
@@ -141,7 +142,10 @@ class PlaneSnapper:
     def plane(self, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(point, normal)`` of the local plane at a position."""
         i, j = self.nearest_two(position)
-        return local_plane(self.keyframe_poses[i], self.keyframe_poses[j])
+        plane = self._planes.get((i, j))
+        if plane is None:
+            plane = self._planes[(i, j)] = local_plane(self.keyframe_poses[i], self.keyframe_poses[j])
+        return plane
 
     def snap(self, T_world_vehicle: np.ndarray) -> np.ndarray:
         """The pose snapped to the local plane of its two nearest keyframes."""

@@ -381,10 +381,11 @@ def _solve(prob: _Problem, T_init: np.ndarray, idx0: np.ndarray, t_start: float,
 
     if active.sum() < cfg["min_inliers"]:
         return fail("too_few_detections" if n < cfg["min_inliers"] else "too_few_inliers")
+    W_all = None            # whitening of every detection at the current T (per detection: rows reusable)
     while rounds < cfg["max_rounds"]:
         rounds += 1
         idx = np.flatnonzero(active)
-        W = prob.whitening(T, idx)
+        W = prob.whitening(T, idx) if W_all is None else W_all[idx]
         T, it = lm(prob, T, idx, W)
         iterations += it
         if not np.all(np.isfinite(T)):
@@ -404,17 +405,16 @@ def _solve(prob: _Problem, T_init: np.ndarray, idx0: np.ndarray, t_start: float,
         # Rounds exhausted with a changed inlier set: solve once more on the final set so the
         # pose and covariance belong to the reported inliers.
         idx = np.flatnonzero(active)
-        W = prob.whitening(T, idx)
-        T, it = lm(prob, T, idx, W)
+        T, it = lm(prob, T, idx, W_all[idx])
         iterations += it
         W_all = prob.whitening(T, all_idx)
         _, c, front, _, _ = prob.residuals(T, all_idx, W_all)
         c2 = np.where(front, c * c, np.inf)
 
     idx = np.flatnonzero(active)
-    W = prob.whitening(T, idx)
-    L, L_det, _, b_det = prob.linearise(T, idx, W)
-    cost = prob.cost(T, idx, W)
+    W = W_all[idx]
+    cost, ev = prob.evaluate(T, idx, W)
+    L, L_det, _, b_det = prob.linearise(T, idx, W, ev)
     prior_chi2 = None
     if prob.P_inv is not None:
         q = prob.prior_residual(T)

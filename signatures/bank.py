@@ -19,7 +19,7 @@ of each level whose features are computed at all.
 """
 from __future__ import annotations
 
-import math
+import contextlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,14 +29,36 @@ from surveys.settings import merge_settings
 from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
 from signatures.hog import level_scale, level_size, window_cell
 
-__all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce"]
+__all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce", "limit_blas_threads"]
 
 #: Detection parameters.
 default_config = {
     "scale_search": 1,    # search nominal level +- this many pyramid levels
     "refine": True,       # sub-cell peak refinement (parabola through the 3x3 neighbourhood)
     "nms_iou": 0.3,       # top-N: suppress detections overlapping a better one by more than this
+    # BLAS threads for the filter multiplies (None: leave numpy's setting).  They are small: a second
+    # thread mostly spins -- on two busy cores five times the CPU and the wall time of one thread --
+    # and a fixed count gives the same sums, the same detections, on every machine.
+    "blas_threads": 1,
 }
+
+_BLAS = None
+
+
+def limit_blas_threads(n: int | None):
+    """Context limiting numpy's BLAS to ``n`` threads (no-op for None or without threadpoolctl)."""
+    global _BLAS
+    if n is None:
+        return contextlib.nullcontext()
+    if _BLAS is None:
+        try:
+            from threadpoolctl import ThreadpoolController
+            _BLAS = ThreadpoolController()      # inspecting the loaded libraries costs ~2 ms: once
+        except ImportError:
+            _BLAS = False
+    if _BLAS is False:
+        return contextlib.nullcontext()
+    return _BLAS.limit(limits=int(n), user_api="blas")
 
 
 def _sigmoid(z):
@@ -317,19 +339,17 @@ class Bank:
             raise ValueError(f"windows must have shape ({n}, 4), got {windows.shape}")
         h, w = np.asarray(image).shape[:2]
         spo, cell = int(self.hog["scales_per_octave"]), int(self.hog["cell"])
+        geom = {}
+        for k in need:
+            lw, lh = level_size((w, h), k, spo)
+            if lw >= cell and lh >= cell:
+                geom[k] = (lh // cell, lw // cell, lw / w, lh / h)
+        i, k, fh, fw, r0, r1, c0, c1 = _range_table(self.classifiers, levels, geom, cell, windows)
         boxes: dict[int, list] = {}
-        for i, c in enumerate(self.classifiers):
-            fh, fw = c.filter_shape
-            for k in levels[i]:
-                lw, lh = level_size((w, h), k, spo)
-                if lw < cell or lh < cell:
-                    continue
-                r0, r1, c0, c1 = _cell_ranges((lh // cell, lw // cell), (lw / w, lh / h), cell, fh, fw, windows[i])
-                if r1 < r0 or c1 < c0:
-                    continue
-                b = boxes.setdefault(k, [r0, r1 + fh, c0, c1 + fw])
-                b[0], b[1] = min(b[0], r0), max(b[1], r1 + fh)
-                b[2], b[3] = min(b[2], c0), max(b[3], c1 + fw)
+        for kk in np.unique(k):
+            on = k == kk
+            boxes[int(kk)] = [int(r0[on].min()), int((r1[on] + fh[on]).max()),
+                              int(c0[on].min()), int((c1[on] + fw[on]).max())]
         return build_pyramid(image, self.hog, levels=sorted(boxes), regions={k: tuple(b) for k, b in boxes.items()})
 
     def detect(self, image, windows=None, top_n: int = 1, config: dict | None = None,
@@ -375,7 +395,8 @@ class Bank:
             levels = [range(max(0, c.level - ss), c.level + ss + 1) for c in self.classifiers]
         elif len(levels) != n:
             raise ValueError(f"levels must list the levels of each of the {n} classifiers")
-        maps = _score_all(self.classifiers, pyr, levels, windows)
+        with limit_blas_threads(cfg["blas_threads"]):
+            maps = _score_all(self.classifiers, pyr, levels, windows)
         return _pick(self.classifiers, pyr, maps, top_n, bool(cfg["refine"]), float(cfg["nms_iou"]))
 
 
@@ -391,20 +412,42 @@ def _compact(a: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------- scoring
 
 
-def _cell_ranges(shape, scale_xy, cell: int, fh: int, fw: int, window) -> tuple[int, int, int, int]:
-    """Top-left cell ranges [r0, r1] x [c0, c1] (inclusive) of windows whose centre lies in
-    ``window`` at a level of ``shape`` (hc, wc) cells and scale ``scale_xy`` (sx, sy); empty ranges
-    have r1 < r0."""
-    hc, wc = shape
-    r0, r1, c0, c1 = 0, hc - fh, 0, wc - fw
-    if window is not None:
-        x0, y0, x1, y1 = (float(v) for v in window)     # plain floats: this runs per classifier and level
-        if not (math.isnan(x0) or math.isnan(y0) or math.isnan(x1) or math.isnan(y1)):
-            ra, ca = window_cell(x0, y0, scale_xy, cell, fh, fw)
-            rb, cb = window_cell(x1, y1, scale_xy, cell, fh, fw)
-            r0, r1 = max(r0, math.ceil(ra - 1e-9)), min(r1, math.floor(rb + 1e-9))
-            c0, c1 = max(c0, math.ceil(ca - 1e-9)), min(c1, math.floor(cb + 1e-9))
-    return r0, r1, c0, c1
+def _range_table(classifiers, levels, geom: dict, cell: int, windows):
+    """Every (classifier, level) pair to score, with its top-left cell ranges (non-empty only).
+
+    ``geom`` maps each available level to ``(hc, wc, sx, sy)`` (cells, scale).  The ranges
+    ``[r0, r1] x [c0, c1]`` (inclusive) hold the top-left cells of the windows whose centre lies in
+    the classifier's search window (:func:`signatures.hog.window_cell` of its corners; the whole
+    level for a NaN window).  Returns int arrays ``i, k, fh, fw, r0, r1, c0, c1``, pairs in
+    classifier order and each classifier's levels in its order.
+    """
+    ii, kk = [], []
+    for i, ks in enumerate(levels):
+        for k in ks:
+            if k in geom:
+                ii.append(i)
+                kk.append(k)
+    i = np.array(ii, dtype=np.intp)
+    k = np.array(kk, dtype=np.intp)
+    shapes = np.array([c.filter_shape for c in classifiers], dtype=np.intp).reshape(-1, 2)
+    fh, fw = shapes[i, 0], shapes[i, 1]
+    g = np.array([geom[int(v)] for v in kk], dtype=float).reshape(-1, 4)
+    r0, r1 = np.zeros(len(i), np.intp), g[:, 0].astype(np.intp) - fh
+    c0, c1 = np.zeros(len(i), np.intp), g[:, 1].astype(np.intp) - fw
+    if windows is not None and len(i):
+        win = np.asarray(windows, dtype=float)[i]
+        sx, sy = g[:, 2], g[:, 3]
+        ok = ~np.isnan(win).any(axis=1)
+        # window_cell() of both corners, on arrays; 1e-9 absorbs round-off.
+        ra, ca = window_cell(win[:, 0], win[:, 1], (sx, sy), cell, fh, fw)
+        rb, cb = window_cell(win[:, 2], win[:, 3], (sx, sy), cell, fh, fw)
+        with np.errstate(invalid="ignore"):
+            r0 = np.where(ok, np.maximum(r0, np.ceil(ra - 1e-9)), r0).astype(np.intp)
+            r1 = np.where(ok, np.minimum(r1, np.floor(rb + 1e-9)), r1).astype(np.intp)
+            c0 = np.where(ok, np.maximum(c0, np.ceil(ca - 1e-9)), c0).astype(np.intp)
+            c1 = np.where(ok, np.minimum(c1, np.floor(cb + 1e-9)), c1).astype(np.intp)
+    keep = (r1 >= r0) & (c1 >= c0)
+    return tuple(a[keep] for a in (i, k, fh, fw, r0, r1, c0, c1))
 
 
 def _score_all(classifiers, pyr: HogPyramid, levels, windows):
@@ -412,23 +455,19 @@ def _score_all(classifiers, pyr: HogPyramid, levels, windows):
     n = len(classifiers)
     out = [[] for _ in range(n)]
     jobs: dict[tuple[int, int], list] = {}
-    cell = pyr.cell
-    for i, c in enumerate(classifiers):
-        fh, fw = c.filter_shape
-        for k in levels[i]:
-            if k not in pyr.levels:
-                continue
-            r0, r1, c0, c1 = _cell_ranges(pyr.levels[k].shape[:2], pyr.scale_xy(k), cell, fh, fw,
-                                          None if windows is None else windows[i])
-            if r1 < r0 or c1 < c0:
-                continue
-            if k in pyr.regions:
-                v0, v1, u0, u1 = pyr.regions[k]
-                if r0 < v0 or r1 + fh > v1 or c0 < u0 or c1 + fw > u1:
-                    raise ValueError(f"pyramid level {k} holds features only in cells {pyr.regions[k]}, but "
-                                     f"classifier {i} needs rows {r0}..{r1 + fh - 1}, columns {c0}..{c1 + fw - 1} "
-                                     "(build it with Bank.pyramid and the same windows and levels)")
-            jobs.setdefault((k, fw), []).append((i, r0, r1, c0, c1))
+    geom = {k: (*f.shape[:2], *pyr.scale_xy(k)) for k, f in pyr.levels.items()}
+    i, k, fh, fw, r0, r1, c0, c1 = _range_table(classifiers, levels, geom, pyr.cell, windows)
+    for kk, box in pyr.regions.items():
+        on = k == kk
+        v0, v1, u0, u1 = box
+        bad = on & ((r0 < v0) | (r1 + fh > v1) | (c0 < u0) | (c1 + fw > u1))
+        if bad.any():
+            j = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"pyramid level {kk} holds features only in cells {box}, but classifier {i[j]} needs "
+                             f"rows {r0[j]}..{r1[j] + fh[j] - 1}, columns {c0[j]}..{c1[j] + fw[j] - 1} "
+                             "(build it with Bank.pyramid and the same windows and levels)")
+    for row in zip(i.tolist(), k.tolist(), fw.tolist(), r0.tolist(), r1.tolist(), c0.tolist(), c1.tolist()):
+        jobs.setdefault((row[1], row[2]), []).append((row[0], row[3], row[4], row[5], row[6]))
     for (k, fw), members in jobs.items():
         feat = pyr.levels[k]
         # One multiply for the whole group over the union of its windows -- unless the windows
@@ -525,6 +564,8 @@ def _iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _pick(classifiers, pyr: HogPyramid, maps, top_n: int, refine: bool, nms_iou: float):
+    if top_n == 1:
+        return _pick_best(classifiers, pyr, maps, refine)
     n = len(classifiers)
     shape = (n, top_n)
     res = {f: np.full(shape, np.nan) for f in Detections._fields()}
@@ -570,3 +611,42 @@ def _pick(classifiers, pyr: HogPyramid, maps, top_n: int, refine: bool, nms_iou:
             if t == top_n:
                 break
     return Detections(**res)
+
+
+def _pick_best(classifiers, pyr: HogPyramid, maps, refine: bool) -> Detections:
+    """:func:`_pick` for ``top_n = 1``: each classifier's best window over its levels (the first
+    level's on a tie, as the stable sort of :func:`_pick`), without candidate lists and NMS."""
+    n = len(classifiers)
+    res = {f: np.full((n, 1), np.nan) for f in Detections._fields()}
+    res["level"] = np.full((n, 1), -1, dtype=int)
+    cell = pyr.cell
+    found = np.zeros(n, bool)
+    for i, c in enumerate(classifiers):
+        entries = maps[i]
+        if not entries:
+            continue
+        best, bj, bm = -np.inf, 0, None
+        for e in entries:
+            m = e[3]
+            j = int(m.argmax())
+            v = float(m.flat[j])
+            if bm is None or v > best:
+                best, bj, bm = v, j, e
+        k, r0, c0, m = bm
+        fh, fw = c.filter_shape
+        rr, cc = divmod(bj, m.shape[1])
+        dr, dc = _parabola(m, rr, cc) if refine else (0.0, 0.0)
+        x, y = pyr.window_centre(k, r0 + rr + dr, c0 + cc + dc, fh, fw)
+        sx, sy = pyr.scale_xy(k)
+        res["x"][i, 0], res["y"][i, 0] = x, y
+        res["scale"][i, 0] = 0.5 * (sx + sy)
+        res["score"][i, 0] = best
+        res["level"][i, 0] = k
+        res["width"][i, 0], res["height"][i, 0] = fw * cell / sx, fh * cell / sy
+        found[i] = True
+    if found.any():
+        cal = np.array([c.calibration for c in classifiers], dtype=float).reshape(n, 2)
+        s = res["score"][found, 0]
+        res["prob"][found, 0] = _sigmoid(cal[found, 0] * s + cal[found, 1])
+    return Detections(**res)
+

@@ -97,7 +97,7 @@ def level_scale(k: int | np.ndarray, scales_per_octave: int) -> float | np.ndarr
 def window_cell(x: float, y: float, scale_xy, cell: int, fh: int, fw: int) -> tuple[float, float]:
     """Fractional top-left cell (row, col) of a window of fh x fw cells centred at input pixel (x, y),
     on a level of scale ``scale_xy`` (sx, sy) -- also before the level exists (:meth:`Bank.pyramid`
-    sizes the regions it needs with it)."""
+    sizes the regions it needs with it).  Every argument may also be an array (elementwise)."""
     sx, sy = scale_xy
     return (y + 0.5) * sy / cell - 0.5 * fh, (x + 0.5) * sx / cell - 0.5 * fw
 
@@ -130,28 +130,19 @@ def to_gray_float(image: np.ndarray, color: bool = False) -> np.ndarray:
     return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_BGR2GRAY).astype(np.float32)
 
 
-# Index arrays depend only on the level size; a pyramid of a fixed camera reuses them forever.
-_INDEX_CACHE: dict[tuple[int, int, int], np.ndarray] = {}
+def _subcell_offsets(h: int, w: int, cell: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per row and per column, the part of a pixel's histogram slot that its half-cell decides.
 
-
-def _subcell_index(h: int, w: int, cell: int) -> np.ndarray:
-    """Per-pixel index of its half-cell (``cell // 2`` px square) times ``_N_BINS + 1``.
-
-    Each half-cell owns 19 histogram slots: the linear orientation vote of a pixel in bin 17 goes
-    to slots 17 and 18, and slot 18 is folded back onto bin 0 afterwards, which avoids a modulo
-    over every pixel.
+    A pixel's half-cell (``cell // 2`` px square) owns 19 slots; the index of its first slot is
+    ``row_part[r] + col_part[c]``.  The linear orientation vote of a pixel in bin 17 goes to slots
+    17 and 18, and slot 18 is folded back onto bin 0 afterwards, which avoids a modulo over every
+    pixel.  (Adding the two parts in place costs less than building, or caching, the (h, w) index
+    of every pixel: detection regions come in many sizes.)
     """
-    key = (h, w, cell)
-    idx = _INDEX_CACHE.get(key)
-    if idx is None:
-        half = cell // 2
-        rows = (np.arange(h) // half).astype(np.intp)
-        cols = (np.arange(w) // half).astype(np.intp)
-        idx = ((rows[:, None] * (w // half) + cols[None, :]) * (_N_BINS + 1)).ravel()
-        if len(_INDEX_CACHE) >= 512:           # regions come in many sizes: drop the oldest
-            del _INDEX_CACHE[next(iter(_INDEX_CACHE))]
-        _INDEX_CACHE[key] = idx
-    return idx
+    half = cell // 2
+    row_part = (np.arange(h) // half) * ((w // half) * (_N_BINS + 1))
+    col_part = (np.arange(w) // half) * (_N_BINS + 1)
+    return row_part.astype(np.intp), col_part.astype(np.intp)
 
 
 def _gradients(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -184,7 +175,10 @@ def _cell_histograms(img: np.ndarray, cell: int) -> np.ndarray:
     w1 *= m                                              # vote to the upper bin
     m -= w1                                              # vote to the lower bin
     idx = b0                                             # fresh array: reuse it in place
-    idx += _subcell_index(h, w, cell)
+    row_part, col_part = _subcell_offsets(h, w, cell)
+    idx2 = idx.reshape(h, w)
+    idx2 += row_part[:, None]
+    idx2 += col_part[None, :]
     n = (2 * hc) * (2 * wc) * (_N_BINS + 1)
     sub = np.bincount(idx, m, minlength=n)
     idx += 1
@@ -193,15 +187,28 @@ def _cell_histograms(img: np.ndarray, cell: int) -> np.ndarray:
     sub[:, :, 0] += sub[:, :, _N_BINS]
     # Bilinear spatial interpolation at half-cell resolution: a cell's triangular weight over the
     # four half-cells at distance 0.5 and 1.5 half-cells from its centre is (0.25, 0.75, 0.75, 0.25).
-    # (Zero padding written into preallocated arrays: np.pad costs more than the arithmetic here.)
+    # (Zero padding written into preallocated arrays: np.pad costs more than the arithmetic here.
+    # The rows pass writes straight into the zero-padded input of the columns pass.)
     pad = np.zeros((2 * hc + 2, 2 * wc, _N_BINS), np.float32)
     pad[1:-1] = sub[:, :, :_N_BINS]
-    rows = (0.25 * pad[0:2 * hc:2] + 0.75 * pad[1:2 * hc + 1:2]
-            + 0.75 * pad[2:2 * hc + 2:2] + 0.25 * pad[3:2 * hc + 3:2])
-    pad = np.zeros((hc, 2 * wc + 2, _N_BINS), np.float32)
-    pad[:, 1:-1] = rows
-    return (0.25 * pad[:, 0:2 * wc:2] + 0.75 * pad[:, 1:2 * wc + 1:2]
-            + 0.75 * pad[:, 2:2 * wc + 2:2] + 0.25 * pad[:, 3:2 * wc + 3:2])
+    pad2 = np.zeros((hc, 2 * wc + 2, _N_BINS), np.float32)
+    _taps_1331(pad[0:2 * hc:2], pad[1:2 * hc + 1:2], pad[2:2 * hc + 2:2], pad[3:2 * hc + 3:2], pad2[:, 1:-1])
+    out = np.empty((hc, wc, _N_BINS), np.float32)
+    return _taps_1331(pad2[:, 0:2 * wc:2], pad2[:, 1:2 * wc + 1:2], pad2[:, 2:2 * wc + 2:2],
+                      pad2[:, 3:2 * wc + 3:2], out)
+
+
+def _taps_1331(a, b, c, d, out):
+    """``out = 0.25 a + 0.75 b + 0.75 c + 0.25 d``, summed left to right, without temporaries."""
+    tmp = np.empty(out.shape, out.dtype)
+    np.multiply(a, 0.25, out=out)
+    np.multiply(b, 0.75, out=tmp)
+    out += tmp
+    np.multiply(c, 0.75, out=tmp)
+    out += tmp
+    np.multiply(d, 0.25, out=tmp)
+    out += tmp
+    return out
 
 
 def fhog(image: np.ndarray, cell: int = 8, clip: float = 0.2, color: bool = False) -> np.ndarray:
@@ -245,12 +252,16 @@ def fhog(image: np.ndarray, cell: int = 8, clip: float = 0.2, color: bool = Fals
     inv = 1.0 / np.sqrt(norms + _EPS)                        # (4, hc, wc)
     out = np.empty((hc, wc, FEATURE_DIM), np.float32)
     # All four normalisations at once (sums over them in the order k = 0..3, as a loop would).
+    # (In-place where possible: the same float32 operations without temporaries.)
     inv = inv[:, :, :, None]
-    hs = np.minimum(hist[None] * inv, clip)                  # (4, hc, wc, 18)
-    out[:, :, :18] = 0.5 * hs.sum(axis=0)
-    out[:, :, 18:27] = 0.5 * np.minimum(insens[None] * inv, clip).sum(axis=0)
+    hs = np.multiply(hist[None], inv)                        # (4, hc, wc, 18)
+    np.minimum(hs, clip, out=hs)
+    np.multiply(hs.sum(axis=0), 0.5, out=out[:, :, :18])
+    hi = np.multiply(insens[None], inv)
+    np.minimum(hi, clip, out=hi)
+    np.multiply(hi.sum(axis=0), 0.5, out=out[:, :, 18:27])
     # Texture: summed clipped sensitive energy under each normalisation (FHOG's 0.2357 = 1/sqrt(18)).
-    out[:, :, 27:] = np.moveaxis(0.2357 * hs.sum(axis=3), 0, 2)
+    np.multiply(np.moveaxis(hs.sum(axis=3), 0, 2), 0.2357, out=out[:, :, 27:])
     return out
 
 

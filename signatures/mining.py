@@ -215,36 +215,30 @@ def shape_geometry(box, cfg: dict) -> tuple[int, int, int] | None:
     return None
 
 
-def _window_boxes(pyr: hogmod.HogPyramid, k: int, rows, cols, fh: int, fw: int):
-    """Centres (n, 2) and boxes (n, 4: x0, y0, x1, y1) in input pixels of cell windows."""
+def _window_axes(pyr: hogmod.HogPyramid, k: int, rows, cols, fh: int, fw: int):
+    """Centres and box edges in input pixels of cell windows, per column and per row (a window's
+    box is separable): ``x, y, x0, x1, y0, y1`` -- x and its edges per column, y per row."""
     sx, sy = pyr.scale_xy(k)
     cell = pyr.cell
     x = (cell * (np.asarray(cols, float) + 0.5 * fw)) / sx - 0.5
     y = (cell * (np.asarray(rows, float) + 0.5 * fh)) / sy - 0.5
     bw, bh = fw * cell / sx, fh * cell / sy
-    boxes = np.stack([x + 0.5 - bw / 2, y + 0.5 - bh / 2, x + 0.5 + bw / 2, y + 0.5 + bh / 2], 1)
-    return np.stack([x, y], 1), boxes
+    return x, y, x + 0.5 - bw / 2, x + 0.5 + bw / 2, y + 0.5 - bh / 2, y + 0.5 + bh / 2
 
 
-def _iou_many(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of boxes a (n, 4) with one box b (4,)."""
-    ix = np.clip(np.minimum(a[:, 2], b[2]) - np.maximum(a[:, 0], b[0]), 0, None)
-    iy = np.clip(np.minimum(a[:, 3], b[3]) - np.maximum(a[:, 1], b[1]), 0, None)
-    inter = ix * iy
-    union = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / np.maximum(union, 1e-12)
-
-
-def _unroll(feat: np.ndarray, r0: int, r1: int, c0: int, c1: int, fh: int, fw: int) -> np.ndarray:
-    """Feature vectors (row-major over r0..r1, c0..c1 inclusive) of fh x fw windows."""
-    sub = feat[r0:r1 + fh, c0:c1 + fw]
-    v = np.lib.stride_tricks.sliding_window_view(sub, (fh, fw), axis=(0, 1))  # (nr, nc, 31, fh, fw)
-    return v.transpose(0, 1, 3, 4, 2).reshape(-1, fh * fw * hogmod.FEATURE_DIM)
+def _window_view(feat: np.ndarray, fh: int, fw: int) -> np.ndarray:
+    """All fh x fw windows of a (Hc, Wc, 31) level as a strided view of shape (Hc - fh + 1, Wc - fw + 1,
+    fh, fw * 31): window (r, c) row by row, each row ``fw`` cells of contiguous memory, so a window
+    flattens to the (fh, fw, 31) layout of a filter and copying windows moves whole rows."""
+    feat = np.ascontiguousarray(feat)
+    t0, t1, t2 = feat.strides
+    shape = (feat.shape[0] - fh + 1, feat.shape[1] - fw + 1, fh, fw * feat.shape[2])
+    return np.ndarray(shape, feat.dtype, feat, 0, (t0, t1, t0, t2))
 
 
 def _windows_at(feat: np.ndarray, rows, cols, fh: int, fw: int) -> np.ndarray:
-    v = np.lib.stride_tricks.sliding_window_view(feat, (fh, fw), axis=(0, 1))
-    return v[np.asarray(rows), np.asarray(cols)].transpose(0, 2, 3, 1).reshape(
+    """Feature vectors (n, fh * fw * 31) of the windows with top-left cells (rows, cols)."""
+    return _window_view(feat, fh, fw)[np.asarray(rows), np.asarray(cols)].reshape(
         len(rows), fh * fw * hogmod.FEATURE_DIM)
 
 
@@ -262,12 +256,17 @@ class _Place:
 
 
 def _candidates(pd: _Place, box, k_n: int, fh: int, fw: int):
-    """All windows a shape may fire on: per image, levels k_n +- S, cells within the radius."""
+    """All windows a shape may fire on: per image, levels k_n +- S, cells within the radius.
+
+    Returns ``(xc, meta, centres, nominal, slices)``: the windows' feature vectors (one row each),
+    their (image, level, row, col), centres in input pixels, the row of each image's nominal
+    window, and each image's row range (an image's windows are contiguous).
+    """
     cfg = pd.cfg
     cell = int(cfg["hog"]["cell"])
     S = int(cfg["scale_search"])
     cx, cy = box[0] + 0.5 * box[2] - 0.5, box[1] + 0.5 * box[3] - 0.5
-    feats, meta, centres, nominal, slices = [], [], [], {}, {}
+    ranges, nominal, slices = [], {}, {}
     start = img_start = 0
     for i, pyr in enumerate(pd.pyramids):
         ex, ey = cx + pd.offsets[i, 0], cy + pd.offsets[i, 1]
@@ -289,22 +288,34 @@ def _candidates(pd: _Place, box, k_n: int, fh: int, fw: int):
             c0, c1 = max(0, cc - rad), min(wc - fw, cc + rad)
             if r1 < r0 or c1 < c0:
                 continue
-            x = _unroll(feat, r0, r1, c0, c1, fh, fw)
-            rr, ccs = np.meshgrid(np.arange(r0, r1 + 1), np.arange(c0, c1 + 1), indexing="ij")
-            rr, ccs = rr.ravel(), ccs.ravel()
-            ctr, _ = _window_boxes(pyr, k, rr, ccs, fh, fw)
             if k == k_n and r0 <= rc <= r1 and c0 <= cc <= c1:
                 nominal[i] = start + (rc - r0) * (c1 - c0 + 1) + (cc - c0)
-            feats.append(x)
-            meta.append(np.stack([np.full(len(rr), i), np.full(len(rr), k), rr, ccs], 1))
-            centres.append(ctr)
-            start += len(rr)
+            ranges.append((i, k, r0, r1, c0, c1))
+            start += (r1 - r0 + 1) * (c1 - c0 + 1)
         if start > img_start:
-            slices[i] = (img_start, start)      # an image's windows are contiguous
+            slices[i] = (img_start, start)
         img_start = start
-    if not feats:
+    if not ranges:
         return None
-    return np.concatenate(feats), np.concatenate(meta), np.concatenate(centres), nominal, slices
+    # One allocation, filled window row by window row (the windows overlap: unrolling is a copy).
+    xc = np.empty((start, fh * fw * hogmod.FEATURE_DIM), np.float32)
+    meta = np.empty((start, 4), np.int64)
+    centres = np.empty((start, 2))
+    o = 0
+    for i, k, r0, r1, c0, c1 in ranges:
+        pyr = pd.pyramids[i]
+        nr, nc = r1 - r0 + 1, c1 - c0 + 1
+        m = nr * nc
+        xc[o:o + m].reshape(nr, nc, fh, -1)[...] = _window_view(pyr.levels[k], fh, fw)[r0:r1 + 1, c0:c1 + 1]
+        rows, cols = np.arange(r0, r1 + 1), np.arange(c0, c1 + 1)
+        meta[o:o + m, 0], meta[o:o + m, 1] = i, k
+        meta[o:o + m, 2] = np.repeat(rows, nc)
+        meta[o:o + m, 3] = np.tile(cols, nr)
+        x, y = _window_axes(pyr, k, rows, cols, fh, fw)[:2]
+        centres[o:o + m, 0] = np.tile(x, nr)
+        centres[o:o + m, 1] = np.repeat(y, nc)
+        o += m
+    return xc, meta, centres, nominal, slices
 
 
 def _negatives(pd: _Place, box, k_n, fh, fw, n_per_image, rng):
@@ -312,12 +323,16 @@ def _negatives(pd: _Place, box, k_n, fh, fw, n_per_image, rng):
     cfg = pd.cfg
     S = int(cfg["scale_search"])
     size = cfg["negative_locality"] * max(box[2], box[3])
+    thr = float(cfg["negative_iou"])
+    size2 = size ** 2
     feats, owner = [], []
-    grids = {}   # (level size) -> all windows' rows, cols, centres, boxes; shared by the images
+    grids = {}   # (level, level shape, level size) -> per-column and per-row window geometry
     for i, pyr in enumerate(pd.pyramids):
         ex = box[0] + pd.offsets[i, 0]
         ey = box[1] + pd.offsets[i, 1]
-        ref = np.array([ex, ey, ex + box[2], ey + box[3]])
+        ref = (ex, ey, ex + box[2], ey + box[3])
+        ref_area = (ref[2] - ref[0]) * (ref[3] - ref[1])
+        gx, gy = ex + 0.5 * box[2], ey + 0.5 * box[3]
         parts = []
         for k in range(k_n - S, k_n + S + 1):
             feat = pyr.levels.get(k)
@@ -326,25 +341,38 @@ def _negatives(pd: _Place, box, k_n, fh, fw, n_per_image, rng):
             key = (k, feat.shape[:2], pyr.sizes[k])
             g = grids.get(key)
             if g is None:
-                rr, cc = np.meshgrid(np.arange(feat.shape[0] - fh + 1),
-                                     np.arange(feat.shape[1] - fw + 1), indexing="ij")
-                rr, cc = rr.ravel(), cc.ravel()
-                g = grids[key] = (rr, cc, *_window_boxes(pyr, k, rr, cc, fh, fw))
-            rr, cc, ctr, boxes = g
-            ok = np.flatnonzero(_iou_many(boxes, ref) < cfg["negative_iou"])
-            d2 = ((ctr[ok, 0] - (ex + 0.5 * box[2])) ** 2 + (ctr[ok, 1] - (ey + 0.5 * box[3])) ** 2)
-            parts.append((k, rr[ok], cc[ok], 1.0 / (1.0 + d2 / size ** 2)))
-        tot = sum(len(c[1]) for c in parts)
+                g = grids[key] = _window_axes(pyr, k, np.arange(feat.shape[0] - fh + 1),
+                                              np.arange(feat.shape[1] - fw + 1), fh, fw)
+            x, y, bx0, bx1, by0, by1 = g
+            # A window's box, centre and overlap with the shape's aligned box are separable in
+            # its row and column: IoU and squared distance are built on the grid from per-row and
+            # per-column terms (the same floating-point operations per window as the per-window
+            # formulas), and the IoU only where the overlap is not zero.
+            ok = np.ones((len(y), len(x)), bool)
+            ix = np.maximum(np.minimum(bx1, ref[2]) - np.maximum(bx0, ref[0]), 0.0)
+            iy = np.maximum(np.minimum(by1, ref[3]) - np.maximum(by0, ref[1]), 0.0)
+            cs, rs = np.flatnonzero(ix > 0), np.flatnonzero(iy > 0)
+            if len(cs) and len(rs):
+                # Windows are ordered along each axis, so those overlapping the box form a block.
+                cs, rs = slice(cs[0], cs[-1] + 1), slice(rs[0], rs[-1] + 1)
+                inter = ix[cs][None, :] * iy[rs][:, None]
+                union = (bx1[cs] - bx0[cs])[None, :] * (by1[rs] - by0[rs])[:, None] + ref_area - inter
+                ok[rs, cs] = inter / np.maximum(union, 1e-12) < thr
+            flat = np.flatnonzero(ok)
+            d2 = ((x - gx) ** 2)[None, :] + ((y - gy) ** 2)[:, None]
+            parts.append((k, len(x), flat, 1.0 / (1.0 + d2.ravel()[flat] / size2)))
+        tot = sum(len(c[2]) for c in parts)
         if tot == 0:
             continue
         wall = np.concatenate([c[3] for c in parts])
-        lv = np.concatenate([np.full(len(c[1]), j) for j, c in enumerate(parts)])
-        rows = np.concatenate([c[1] for c in parts])
-        cols = np.concatenate([c[2] for c in parts])
-        pick = rng.choice(tot, size=min(n_per_image, tot), replace=False, p=wall / wall.sum())
-        for j in np.unique(lv[pick]):
-            sel = pick[lv[pick] == j]
-            feats.append(_windows_at(pyr.levels[parts[j][0]], rows[sel], cols[sel], fh, fw))
+        pick = _weighted_sample(rng, wall / wall.sum(), min(n_per_image, tot))
+        # The picked windows, level by level (in the order of the levels, each in pick order).
+        ends = np.cumsum([len(c[2]) for c in parts])
+        lv = np.searchsorted(ends, pick, side="right")
+        for j in np.unique(lv):
+            k, nc, flat, _ = parts[j]
+            sel = flat[pick[lv == j] - (ends[j] - len(flat))]
+            feats.append(_windows_at(pyr.levels[k], sel // nc, sel % nc, fh, fw))
             owner.append(np.full(len(sel), i))
     ext = []
     if pd.neg_pyramids and cfg["external_negatives"] > 0:
@@ -368,6 +396,32 @@ def _negatives(pd: _Place, box, k_n, fh, fw, n_per_image, rng):
     owner = np.concatenate(owner) if owner else np.zeros(0, int)
     extx = np.concatenate(ext) if ext else np.zeros((0, D), np.float32)
     return local, owner, extx
+
+
+def _weighted_sample(rng: np.random.Generator, p: np.ndarray, size: int) -> np.ndarray:
+    """``rng.choice(len(p), size, replace=False, p=p)`` for positive weights summing to 1.
+
+    The sampler of numpy's ``Generator.choice`` (numpy 2.x: draw uniforms, invert the cumulative
+    weights, keep first occurrences, zero the drawn weights and repeat for the rest), without its
+    argument checks -- a Kahan sum and three passes over ``p`` that cost more than the sampling for
+    the ~10^4 windows per image of a negative draw; the same draws from the same generator state.
+    ``p`` is overwritten.
+    """
+    found = np.zeros(size, dtype=np.int64)
+    n_uniq = 0
+    while n_uniq < size:
+        x = rng.random((size - n_uniq,))
+        if n_uniq > 0:
+            p[found[:n_uniq]] = 0
+        cdf = np.cumsum(p)
+        cdf /= cdf[-1]
+        new = cdf.searchsorted(x, side="right")
+        _, first = np.unique(new, return_index=True)
+        first.sort()
+        new = new.take(first)
+        found[n_uniq:n_uniq + new.size] = new
+        n_uniq += new.size
+    return found
 
 
 def _svm_dual(K: np.ndarray, n_pos: int, C: float, w_pos: float) -> tuple[np.ndarray, float]:
@@ -403,27 +457,53 @@ def _svm_dual(K: np.ndarray, n_pos: int, C: float, w_pos: float) -> tuple[np.nda
 
 
 class _Trainer:
-    """SVM fits on the precomputed linear kernel with a cached negative Gram matrix."""
+    """SVM fits on the precomputed linear kernel with a cached negative Gram matrix.
+
+    A shape's fits reuse a few negative sets (one per partition, and their unions for the final
+    fits): each set's rows and Gram block are gathered once and kept, keyed by the index array
+    (callers pass the same array objects again).
+    """
 
     def __init__(self, xc: np.ndarray, xneg: np.ndarray, C: float, balanced: bool):
         self.xc, self.xneg = xc, xneg
         self.gnn = xneg @ xneg.T
         self.C, self.balanced = C, balanced
+        self._sets: dict[int, tuple] = {}
+
+    def _negative_set(self, neg_idx):
+        got = self._sets.get(id(neg_idx))
+        if got is None or got[0] is not neg_idx:
+            got = self._sets[id(neg_idx)] = (neg_idx, self.xneg[neg_idx],
+                                             self.gnn[np.ix_(neg_idx, neg_idx)].astype(np.float64))
+        return got[1], got[2]
 
     def fit(self, pos_idx, neg_idx):
         """Train on candidate rows ``pos_idx`` vs negative-pool rows ``neg_idx`` -> (w, b)."""
         xp = self.xc[pos_idx]
-        xn = self.xneg[neg_idx]
+        xn, gnn = self._negative_set(neg_idx)
         n_p, n_n = len(pos_idx), len(neg_idx)
         K = np.empty((n_p + n_n, n_p + n_n))
         K[:n_p, :n_p] = xp @ xp.T
         kpn = xp @ xn.T
         K[:n_p, n_p:] = kpn
         K[n_p:, :n_p] = kpn.T
-        K[n_p:, n_p:] = self.gnn[np.ix_(neg_idx, neg_idx)]
+        K[n_p:, n_p:] = gnn
         coef, b = _svm_dual(K, n_p, self.C, n_n / n_p if self.balanced else 1.0)
         w = coef[:n_p].astype(np.float32) @ xp + coef[n_p:].astype(np.float32) @ xn
         return w, b
+
+
+def _fire(xc: np.ndarray, slices: dict, images, w: np.ndarray, b: float, top_k: int):
+    """Best window per image of a partition, then the ``top_k`` best images: (rows of xc, scores)."""
+    best = []
+    for i in images:
+        a, e = slices[i]
+        sc = xc[a:e] @ w + b
+        j = int(np.argmax(sc))
+        best.append((float(sc[j]), a + j))
+    best.sort(key=lambda t: -t[0])
+    keep = best[:min(top_k, len(best))]
+    return np.array([t[1] for t in keep], dtype=int), np.array([t[0] for t in keep])
 
 
 def _same(a: np.ndarray, b: np.ndarray, tol: int) -> bool:
@@ -473,18 +553,6 @@ def _mine_shape(pd: _Place, s_idx: int, box, kind: str):
     K = int(cfg["top_k"])
     tol = int(cfg["converge_tol_cells"])
 
-    def fire(w, b, q):
-        """Best window per image of partition q, then the top-K images."""
-        best = []
-        for i in part_imgs[q]:
-            a, e = slices[i]
-            sc = xc[a:e] @ w + b
-            j = int(np.argmax(sc))
-            best.append((float(sc[j]), a + j))
-        best.sort(key=lambda t: -t[0])
-        keep = best[:min(K, len(best))]
-        return np.array([t[1] for t in keep], dtype=int), np.array([t[0] for t in keep])
-
     pos = [None] * P
     prev = [None] * P
     pos[0] = np.array(init, dtype=int)
@@ -493,7 +561,7 @@ def _mine_shape(pd: _Place, s_idx: int, box, kind: str):
     for t in range(max_steps):
         p, q = t % P, (t + 1) % P
         w, b = trainer.fit(pos[p], neg_of[p])
-        idx, _ = fire(w, b, q)
+        idx, _ = _fire(xc, slices, part_imgs[q], w, b, K)
         steps += 1
         top = meta[idx]
         # streak = consecutive steps whose partition kept its previous top-K; a full cycle of

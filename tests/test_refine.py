@@ -1,5 +1,4 @@
 """Landmark refinement (mapping/refine.py) and its geometry (mapping/geometry.py) on synthetic windows."""
-import time
 
 import numpy as np
 import pytest
@@ -260,16 +259,6 @@ def test_refinement_is_deterministic_and_validates_input():
         refine_landmarks(*args[:5], Q=-np.eye(2))
     with pytest.raises(ValueError, match="scale"):
         Detections(np.zeros((3, 5, 2)), np.ones((3, 4)), 1.0, 1.0)
-
-
-def test_one_place_refines_in_well_under_a_second():
-    w = synthetic_window(n_landmarks=300, n_frames=21, n_random=30, seed=0)
-    args = (w["detections"], w["T_window_place"], w["camera"], w["T_vehicle_camera"], w["reference"], w["Q"])
-    refine_landmarks(*args)  # warm-up
-    t0 = time.perf_counter()
-    refine_landmarks(*args)
-    # ~0.3 s on one idle core; the margin absorbs a busy CI machine, not a de-vectorised loop
-    assert time.perf_counter() - t0 < 2.0
 
 
 def test_measurement_covariance_follows_eq5():

@@ -27,3 +27,6 @@ def test_speed_bench_targets(tmp_path):
     assert res["train_seconds_per_place"] <= 30.0
     assert res["detect_ms_per_frame"]["50"] <= 50.0
     assert set(res["detect_ms_per_frame"]) == {"50", "200"} and res["blas"]["library"]
+    # CPU time can only be below the wall time of a single-threaded run
+    assert 0 < res["train_cpu_seconds_per_place"] <= res["train_seconds_per_place"] * 1.05 + 0.5
+    assert set(res["detect_cpu_ms_per_frame"]) == {"50", "200"}

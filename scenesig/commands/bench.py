@@ -27,6 +27,8 @@ BENCHMARKS = {
     "strict_decode": ("strict_decode", "Cost per VGA frame and catch rate of strict image decoding."),
     "aerial": ("aerial", "Monte-Carlo UAV-to-satellite-map matching (MRSM-CC and baselines)."),
     "absolute-pose": ("absolute_pose", "Robust absolute pose (poselib, pycolmap, OpenCV) on synthetic matches."),
+    "profile_localise": ("profile_localise", "Where a deterministic replay spends its time, per stage."),
+    "profile_mining": ("profile_mining", "Where one place's mining spends its time, per stage."),
 }
 
 

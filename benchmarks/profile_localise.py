@@ -1,0 +1,109 @@
+"""Profile of ``scenesig localise``: ``scenesig bench profile_localise MAP RUN [--every 2] [--json OUT]``.
+
+Replays one run against a map exactly as ``scenesig localise`` does (deterministic mode, the
+detector on every ``--every``-th frame; the demo's 10 Hz camera with ``--every 2`` is the paper's
+5 Hz detector) and reports where the replay loop's wall time goes, per stage:
+
+* ``image_decode`` -- reading and decoding the detector frames (:meth:`surveys.run.SurveyRun.image`;
+  with prefetching, the default, on a worker thread, overlapping the other stages);
+* ``hog`` -- the HOG pyramid regions the bank needs (:func:`signatures.hog.build_pyramid`);
+* ``bank_filters`` -- the filter responses (``signatures.bank._score_all``);
+* ``peak_search`` -- best firing per classifier, sub-cell refinement (``signatures.bank._pick``);
+* ``search_windows`` -- the prior's search windows and predicted scales (:mod:`localiser.detector`);
+* ``solve`` -- the eq. 10 pose solve (:func:`localiser.solver.solve`);
+* ``graph_update`` -- odometry, localisations and resets into the pose graph
+  (:class:`localiser.posegraph.PoseGraph`); ``graph_query`` -- its estimates and marginals;
+* ``snap`` -- SE(2) snapping; ``place_choice`` -- nearest place and the place ahead;
+* ``bookkeeping`` -- the rest of the loop (wall time of the loop minus the stages run on the
+  main thread).
+
+Each stage has ``ms`` (wall, exclusive: a stage called inside another is charged to itself),
+``cpu_ms`` (CPU time of the thread that ran it), ``calls``, both per detector frame, and
+``threads``.  ``realtime_factor`` and ``wall_seconds`` are the replay's own (data duration / wall
+time of the loop); ``cpu_seconds`` is the process CPU time of the loop.  On a loaded machine wall
+times include waiting for a core and CPU times do not: compare CPU times there.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+__all__ = ["profile_localise", "main"]
+
+
+def _targets():
+    from localiser import detector, pipeline, posegraph, se2
+    from localiser.pipeline import Localiser
+    from mapping.store import MapStore
+    from signatures import bank
+    from surveys.run import SurveyRun
+    return [(SurveyRun, "image", "image_decode"),
+            (bank, "build_pyramid", "hog"), (bank, "_score_all", "bank_filters"), (bank, "_pick", "peak_search"),
+            (detector, "search_windows", "search_windows"),
+            (detector.Detector, "_predicted_levels", "search_windows"),
+            (pipeline, "solve", "solve"),
+            (posegraph.PoseGraph, "add_odometry", "graph_update"),
+            (posegraph.PoseGraph, "add_localisation", "graph_update"),
+            (posegraph.PoseGraph, "reset", "graph_update"),
+            (posegraph.PoseGraph, "estimate", "graph_query"),
+            (posegraph.PoseGraph, "covariance", "graph_query"),
+            (se2.PlaneSnapper, "snap", "snap"),
+            (MapStore, "nearest_place", "place_choice"), (Localiser, "place_ahead", "place_choice")]
+
+
+def profile_localise(map_root, run_root, method: str = "signatures", every: int = 2,
+                     prefetch: bool = True) -> dict:
+    """Replay ``run_root`` against ``map_root`` with stage timers (module docstring)."""
+    from benchmarks._stages import StageTimer
+    from localiser.replay import replay
+    from mapping.store import MapStore
+    from surveys.run import read_run
+
+    store = MapStore.open(map_root)
+    run = read_run(run_root)
+    timer = StageTimer()
+    with timer.patch(*_targets()):
+        c0, m0 = time.process_time(), time.thread_time()
+        res = replay(store, run, method, every=every, config={"prefetch": bool(prefetch)})
+        cpu, main_cpu = time.process_time() - c0, time.thread_time() - m0
+    tm = res.timings
+    n_det = int(res.detector_ran.sum())
+    stages = timer.as_dict(per=max(n_det, 1))
+    for k, d in stages.items():
+        d["ms_per_detector_frame"] = d.pop("ms_per")
+        d["cpu_ms_per_detector_frame"] = d.pop("cpu_ms_per")
+        d["threads"] = sorted(timer.thread_names[k])
+    on_main = [k for k in timer.seconds if timer.thread_names[k] == {"MainThread"}]
+    book = tm["wall_seconds"] - sum(timer.seconds[k] for k in on_main)
+    book_cpu = main_cpu - sum(timer.cpu_seconds[k] for k in on_main)
+    stages["bookkeeping"] = {"ms": round(1e3 * book, 3), "cpu_ms": round(1e3 * book_cpu, 3), "calls": 0,
+                             "ms_per_detector_frame": round(1e3 * book / max(n_det, 1), 3),
+                             "cpu_ms_per_detector_frame": round(1e3 * book_cpu / max(n_det, 1), 3),
+                             "threads": ["MainThread"]}
+    return {"map": str(map_root), "run": run.name, "method": res.method, "every": every, "prefetch": bool(prefetch),
+            "frames": len(res.times), "detector_frames": n_det, "duration_s": round(tm["duration_s"], 3),
+            "wall_seconds": round(tm["wall_seconds"], 3), "cpu_seconds": round(cpu, 3),
+            "realtime_factor": round(tm["realtime_factor"], 3),
+            "ms_per_detection": tm["ms_per_detection"], "ms_per_solve": tm["ms_per_solve"],
+            "localised_fraction": float(res.localised.sum()) / max(n_det, 1), "failures": int(res.failures),
+            "stages": stages}
+
+
+def main(argv=None) -> int:
+    from benchmarks._stages import emit_json
+
+    ap = argparse.ArgumentParser(prog="scenesig bench profile_localise", description=__doc__.splitlines()[0])
+    ap.add_argument("map", help="map folder")
+    ap.add_argument("run", help="survey run folder")
+    ap.add_argument("--method", default="signatures")
+    ap.add_argument("--every", type=int, default=2, help="detector on every N-th frame (default 2: 5 Hz at 10 Hz)")
+    ap.add_argument("--no-prefetch", action="store_true", help="decode frames inline (serial profile)")
+    ap.add_argument("--json", help="write the result JSON here")
+    args = ap.parse_args(argv)
+    res = profile_localise(args.map, args.run, args.method, args.every, not args.no_prefetch)
+    emit_json(res, args.json)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
