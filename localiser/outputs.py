@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from .replay import ReplayResult
 
 __all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "reference_path", "map_relative_truth", "compute_metrics",
-           "write_frames_csv", "read_frames_csv", "write_outputs"]
+           "write_frames_csv", "read_frames_csv", "write_outputs", "detection_rates"]
 
 #: Columns of ``frames.csv``.
 FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
@@ -77,7 +77,9 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     ``ms_per_detection``, ``ms_per_solve``, ``ms_per_odometry_update``, ``realtime_factor`` (data
     duration / wall time of the replay), ``wall_seconds``; bookkeeping ``mode``, ``every``,
     ``distance_m``, ``duration_s``, ``frames``, ``frames_evaluated``, ``detector_frames``,
-    ``localisations``, ``truth_source``, ``map``, and in real-time mode ``frames_dropped`` and
+    ``localisations``, ``truth_source``, ``map``, ``run_path`` (the run folder, for ``scenesig map
+    update``); detection rates ``detections_per_frame_mean`` and ``inliers_per_detection_mean``
+    (:func:`detection_rates`); and in real-time mode ``frames_dropped`` and
     ``frames_detected``.  Without ``truth.tum`` the errors are taken against ``groundtruth.tum``
     (``truth_source``).
     """
@@ -131,13 +133,25 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         "frames_evaluated": m["frames_evaluated"],
         "detector_frames": int(result.detector_ran.sum()),
         "localisations": int(result.localised.sum()),
+        **detection_rates(result.detections[result.detector_ran], result.inliers[result.detector_ran]),
         "truth_source": source,
         "map": str(store.root),
+        "run_path": str(Path(run.root).resolve()) if run.root is not None else None,
     }
     for k in ("frames_dropped", "frames_detected"):
         if k in tm:
             metrics[k] = tm[k]
     return metrics, ev
+
+
+def detection_rates(detections, inliers) -> dict:
+    """``detections_per_frame_mean`` (detections per detector frame) and ``inliers_per_detection_mean``
+    (inliers of the pose solve per detection, pooled over those frames: total inliers / total
+    detections; None without detections) of the frames the detector ran on."""
+    d = np.asarray(detections, dtype=float)
+    k = np.asarray(inliers, dtype=float)
+    return {"detections_per_frame_mean": float(d.mean()) if d.size else None,
+            "inliers_per_detection_mean": float(k.sum() / d.sum()) if d.sum() > 0 else None}
 
 
 def _fmt(v: float) -> str:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -50,7 +51,8 @@ from mapping.refine import Detections, REASONS, refine_landmarks
 from mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
 from surveys.io import atomic_write_bytes
 
-__all__ = ["default_config", "build_map", "build_place", "load_config"]
+__all__ = ["default_config", "build_map", "build_place", "mine_and_refine", "MinedPlace", "place_views",
+           "place_negatives", "load_config"]
 
 default_config = {
     "places": {},                 # overrides of mapping.places.default_config
@@ -176,13 +178,41 @@ def build_place(place: places_mod.Place, views: list, negatives: list[np.ndarray
         return _build_place(place, views, negatives, config)
 
 
-def _build_place(place, views, negatives, config):
-    cfg = _merge(config)
-    t0 = time.perf_counter()
+@dataclass
+class MinedPlace:
+    """What mining and landmark refinement make of one place's views (:func:`mine_and_refine`).
+
+    ``bank`` holds the kept classifiers; ``landmarks`` (n, 3), ``covariances`` (n, 3, 3) and ``depths``
+    (n,) are in the vehicle frame of ``views[0]``'s training frame; ``boxes`` (n, 2) are the kept
+    classifiers' firings there (NaN where none), ``ref_size`` (n, 2) / ``ref_scale`` (n,) the size and
+    scale of firings the landmark explains (NaN otherwise); ``images`` the views' gray training images.
+    """
+
+    bank: object
+    landmarks: np.ndarray
+    covariances: np.ndarray
+    depths: np.ndarray
+    boxes: np.ndarray
+    ref_size: np.ndarray
+    ref_scale: np.ndarray
+    mined: int
+    rejected: dict
+    mining: object
+    images: list
+
+
+def mine_and_refine(views: list, negatives: list[np.ndarray], cfg: dict, rng: int) -> MinedPlace:
+    """Mining (§3.2) of the views' training images, then the temporal check and depth refinement
+    (§3.2.1) of every survivor over ``views[0]``'s window, with that run's odometry.
+
+    ``views[0]`` is the frame the landmarks are expressed in (at build time the reference run's view;
+    a lifelong update passes the live run's view, :mod:`mapping.update`).  ``cfg`` is a merged build
+    configuration; ``rng`` seeds mining.
+    """
     ref = views[0]
     camera, T_vc = ref.run.camera, ref.run.T_vehicle_camera
     images = [v.run.image(v.frame, gray=True) for v in views]
-    bank, mstats = mine_place(images, config=cfg["mining"], negatives=negatives, n_jobs=1, rng=place.index)
+    bank, mstats = mine_place(images, config=cfg["mining"], negatives=negatives, n_jobs=1, rng=rng)
 
     window = _subsample(ref.window, ref.frame, cfg["max_window_frames"], ref.T_frame_window[:, :3, 3])
     rows = np.searchsorted(ref.window, window)
@@ -225,10 +255,23 @@ def _build_place(place, views, negatives, config):
         ref_size = np.where(at_ref[:, None], size[keep, reference], np.nan)
         ref_scale = np.where(at_ref, scale[keep, reference], np.nan)
     else:
-        keep = np.zeros(0, int)
         kept_bank = bank
         landmarks, covs, depths = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
-        boxes = np.zeros((0, 2))
+        boxes, ref_size, ref_scale = np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
+    return MinedPlace(kept_bank, landmarks, covs, depths, boxes, ref_size, ref_scale, int(n),
+                      {"not_converged": int(mstats.rejected_not_converged), **counts}, mstats, images)
+
+
+def _build_place(place, views, negatives, config):
+    cfg = _merge(config)
+    t0 = time.perf_counter()
+    ref = views[0]
+    camera, T_vc = ref.run.camera, ref.run.T_vehicle_camera
+    mp = mine_and_refine(views, negatives, cfg, rng=place.index)
+    images, kept_bank, n = mp.images, mp.bank, mp.mined
+    landmarks, covs, depths, boxes = mp.landmarks, mp.covariances, mp.depths, mp.boxes
+    ref_size, ref_scale = mp.ref_size, mp.ref_scale
+    keep = np.arange(len(kept_bank))
 
     rel_err, truth_spread = [], []
     if len(keep):
@@ -255,11 +298,24 @@ def _build_place(place, views, negatives, config):
               "training_runs": [v.run.name for v in views], "detections_at_reference": [[float(v) if np.isfinite(v) else None for v in b] for b in boxes],
               "mined": int(n), "kept": int(len(keep)), "georef": georef_obs},
     )
-    stats = {"place": place.index, "seconds": time.perf_counter() - t0, "mining": mstats.as_dict(),
-             "rejected": {"not_converged": int(mstats.rejected_not_converged), **counts},
+    stats = {"place": place.index, "seconds": time.perf_counter() - t0, "mining": mp.mining.as_dict(),
+             "rejected": mp.rejected,
              "depth_rel_errors": rel_err, "depth_truth_spread": truth_spread, "signatures": int(len(keep)),
              "georef_runs_ok": int(sum(bool(o["ok"]) for o in georef_obs))}
     return data, stats
+
+
+def place_views(place, train: list[SurveyRun], reference: SurveyRun, cfg: dict) -> list:
+    """A place's training views (:func:`mapping.places.training_views`), the reference run's first."""
+    views = places_mod.training_views(place, train, cfg["places"])
+    return [v for v in views if v.run.name == reference.name] + [v for v in views if v.run.name != reference.name]
+
+
+def place_negatives(place, ref_frames: dict, reference: SurveyRun, cfg: dict) -> list[np.ndarray]:
+    """Extra negatives of a place: the reference images of the places ``cfg["negative_places"]`` away
+    (``ref_frames``: place index -> reference frame)."""
+    return [reference.image(ref_frames[place.index + off], gray=True)
+            for off in cfg["negative_places"] if place.index + off in ref_frames]
 
 
 def _place_task(place, views, negatives, config):
@@ -300,14 +356,7 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
 
     def tasks():
         for p in todo:
-            views = places_mod.training_views(p, train, cfg["places"])
-            views = [v for v in views if v.run.name == reference.name] + [v for v in views if v.run.name != reference.name]
-            negs = []
-            for off in cfg["negative_places"]:
-                q = p.index + off
-                if q in ref_frames:
-                    negs.append(reference.image(ref_frames[q], gray=True))
-            yield p, views, negs
+            yield p, place_views(p, train, reference, cfg), place_negatives(p, ref_frames, reference, cfg)
 
     stats = {}
     t0 = time.perf_counter()
