@@ -66,8 +66,8 @@ default_config = {
     # the training runs of the tiny world: their well-localised places have 0.8-1.0, the failing 0-0.4
     "min_inliers_per_detection": 0.5,
     # the live frame's pose is carried from an accepted localisation by at most this much odometry (m):
-    # the localiser's own failure distance is 20 m, and odometry drifts ~0.1 m in 15 m
-    "max_blind_m": 15.0,
+    # the localiser's own failure distance (McManus et al. 2015, §4.3): it trusts its odometry that far
+    "max_blind_m": 20.0,
     "max_position_error_m": 8.0,      # the nearest estimated frame must be this close to the place
     "max_heading_error_deg": 30.0,    # ... and face the same way
 }
@@ -390,8 +390,7 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
         summary["message"] = "nothing added: " + "; ".join(
             ("no place was weak" if w == "ok" else w) for w in why)
         (root / JOURNAL).unlink(missing_ok=True)
-        atomic_write_text(root / SUMMARY, json.dumps(summary, indent=1, allow_nan=False) + "\n")
-        return summary
+        return summary  # the map is not touched
 
     bcfg = build_settings(store.params["config"])
     reference = runs[store.params["reference"]]
