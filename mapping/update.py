@@ -370,7 +370,7 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
     inputs = _digest({"localisations": [loc.digest for loc in locs], "config": cfg})
     gen = store.generation + 1
     t0 = time.perf_counter()
-    verdicts = {loc.folder.name: weak_places(store, loc, cfg) for loc in locs}
+    verdicts = {str(loc.folder): weak_places(store, loc, cfg) for loc in locs}
     summary = {"map": str(root), "generation": store.generation, "updated": [], "verdicts": verdicts,
                "seconds_per_updated_place": None, "bytes_added": 0}
     if store.history and store.history[-1].get("inputs") == inputs:
@@ -382,7 +382,7 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
     # places to update and the live frames they get (in localisation order)
     todo: dict[int, list] = {}
     for loc in locs:
-        for i, rec in verdicts[loc.folder.name].items():
+        for i, rec in verdicts[str(loc.folder)].items():
             if rec["weak"] and rec["frame"] is not None:
                 todo.setdefault(i, []).append((loc, rec))
     if not todo:
