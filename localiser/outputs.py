@@ -20,7 +20,7 @@ from surveys.errors import DataError
 from surveys.io import atomic_write_text
 from surveys.tum import write_tum
 
-from .evaluation import ReferencePath, evaluate
+from .evaluation import ReferencePath, evaluate, summary
 
 if TYPE_CHECKING:
     from .replay import ReplayResult
@@ -96,8 +96,6 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     tm = result.timings
     map_errors = {}
     if source == "truth":
-        from .evaluation import summary
-
         tmap = map_relative_truth(store, tp)
         if tmap is not None:
             evm = evaluate(result.times, result.poses, tt, tmap, reference_path(store), result.localised,
