@@ -9,6 +9,7 @@ columns, used by its writer and its reader :func:`read_frames_csv`.
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -18,7 +19,8 @@ import numpy as np
 from mapping.store import MapStore
 from surveys.errors import DataError
 from surveys.io import atomic_write_text
-from surveys.tum import write_tum
+from surveys.run import read_run
+from surveys.tum import read_tum, write_tum
 
 from .evaluation import ReferencePath, evaluate, summary
 
@@ -26,7 +28,8 @@ if TYPE_CHECKING:
     from .replay import ReplayResult
 
 __all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "reference_path", "map_relative_truth", "compute_metrics",
-           "write_frames_csv", "read_frames_csv", "write_outputs", "detection_rates"]
+           "write_frames_csv", "read_frames_csv", "write_outputs", "detection_rates",
+           "read_localisation"]
 
 #: Columns of ``frames.csv``.
 FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
@@ -210,3 +213,50 @@ def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_
 
         plot_trajectory(out / "trajectory.png", result, store, ev, metrics)
     return metrics
+
+
+def read_localisation(folder, search=()):
+    """Read a ``scenesig localise`` output back as a :class:`mapping.update.Localisation` (for ``scenesig
+    map update``); the run is found by ``metrics.json``'s ``run_path``, else by its name beside it or in
+    the folders ``search``.  DataError naming the file if something is missing or inconsistent."""
+    from mapping.update import Localisation, find_run
+
+    folder = Path(folder)
+    mpath = folder / "metrics.json"
+    if not mpath.is_file():
+        raise DataError(mpath, "missing: not a scenesig localise output folder")
+    try:
+        metrics = json.loads(mpath.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(mpath, f"not valid JSON: {exc}") from None
+    for key in ("run", "method"):
+        if key not in metrics:
+            raise DataError(mpath, f"lacks {key!r}")
+    if metrics["method"] != "signatures":
+        raise DataError(mpath, f"method is {metrics['method']!r}: only a scene-signature localisation tells "
+                               f"where the map's signatures were weak")
+    tpath = folder / "trajectory.tum"
+    if not tpath.is_file():
+        raise DataError(tpath, "missing: the localiser's estimated trajectory is needed")
+    times, poses = read_tum(tpath)
+    frames = read_frames_csv(folder / "frames.csv")
+    # the run: where the localisation read it, else by name beside it or in ``search``
+    hint = Path(metrics["run_path"]) if metrics.get("run_path") else None
+    search = ([hint.parent] if hint is not None else []) + [Path(d) for d in search]
+    run = read_run(find_run(metrics["run"], [hint], search))
+    if run.name != metrics["run"]:
+        raise DataError(mpath, f"names run {metrics['run']!r} but {run.root} holds run {run.name!r}")
+    n = len(run.frame_times)
+    if len(times) != n or len(frames["time"]) != n:
+        raise DataError(tpath, f"{len(times)} poses and {len(frames['time'])} frames.csv rows for run "
+                               f"{run.name!r} of {n} frames: not this run's localisation")
+    if not np.allclose(times, run.frame_times, atol=1e-5):
+        raise DataError(tpath, f"timestamps are not those of run {run.name!r}'s frames")
+    h = hashlib.sha256()
+    for name in ("metrics.json", "trajectory.tum", "frames.csv"):
+        data = (folder / name).read_bytes()
+        if name == "metrics.json":  # the machine-dependent parts (timings, paths) are not inputs
+            data = json.dumps({k: v for k, v in metrics.items() if k not in (*TIMING_KEYS, "map", "run_path")},
+                              sort_keys=True).encode()
+        h.update(hashlib.sha256(data).digest())
+    return Localisation(folder, metrics, times, np.asarray(poses).reshape(-1, 4, 4), frames, run, h.hexdigest())

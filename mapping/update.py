@@ -49,14 +49,13 @@ from surveys.geometry import invert, yaw_of
 from surveys.io import atomic_write_bytes, atomic_write_text, fsync_dir
 from surveys.run import SurveyRun, read_run
 from surveys.settings import merge_settings
-from surveys.tum import read_tum
 from signatures.bank import Bank
 from mapping import places as places_mod
 from mapping.build import _merge as build_settings, mine_and_refine, place_negatives, place_views
-from mapping.codec import PlaceData, decode_place, encode_place
+from mapping.codec import PlaceData, encode_place
 from mapping.store import JOURNAL as BUILD_JOURNAL, MANIFEST, PLACES_DIR, MapStore, place_file_name, write_manifest
 
-__all__ = ["default_config", "Localisation", "read_localisation", "weak_places", "update_map"]
+__all__ = ["default_config", "Localisation", "find_run", "weak_places", "update_map"]
 
 JOURNAL = "update.jsonl"
 SUMMARY = "update_summary.json"
@@ -75,8 +74,10 @@ default_config = {
 
 @dataclass
 class Localisation:
-    """A ``scenesig localise`` output folder, read back: its metrics, the localiser's estimated
-    trajectory (one pose per frame), its ``frames.csv`` columns and the live run."""
+    """A ``scenesig localise`` output folder, read back (:func:`localiser.outputs.read_localisation`):
+    its metrics, the localiser's estimated trajectory (one pose per frame), its ``frames.csv`` columns
+    (``place``, ``detections``, ``inliers``, ``localised``, ...), the live run, and a digest of the
+    machine-independent content (what makes two updates the same)."""
 
     folder: Path
     metrics: dict
@@ -87,7 +88,7 @@ class Localisation:
     digest: str
 
 
-def _find_run(name: str, hints: list[Path], search: list[Path]) -> Path:
+def find_run(name: str, hints: list[Path], search: list[Path]) -> Path:
     """The folder of the run called ``name``: a hint if it is that run, else a sub-folder of ``search``."""
     for h in hints:
         if h is not None and (h / "run.toml").is_file() and read_run(h, check_images=False).name == name:
@@ -100,54 +101,6 @@ def _find_run(name: str, hints: list[Path], search: list[Path]) -> Path:
     raise DataError(search[0] if search else Path(name),
                     f"run {name!r} not found (searched {[str(d) for d in search]}); pass its parent folder with "
                     f"--runs-dir")
-
-
-def read_localisation(folder, search: list[Path] = ()) -> Localisation:
-    """Read a ``scenesig localise`` output; the run is found by ``metrics.json``'s ``run_path`` (or by
-    its name in ``search``).  DataError naming the file if something is missing or inconsistent."""
-    from localiser.outputs import read_frames_csv
-
-    folder = Path(folder)
-    mpath = folder / "metrics.json"
-    if not mpath.is_file():
-        raise DataError(mpath, "missing: not a scenesig localise output folder")
-    try:
-        metrics = json.loads(mpath.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(mpath, f"not valid JSON: {exc}") from None
-    for key in ("run", "method"):
-        if key not in metrics:
-            raise DataError(mpath, f"lacks {key!r}")
-    if metrics["method"] != "signatures":
-        raise DataError(mpath, f"method is {metrics['method']!r}: only a scene-signature localisation tells "
-                               f"where the map's signatures were weak")
-    tpath = folder / "trajectory.tum"
-    if not tpath.is_file():
-        raise DataError(tpath, "missing: the localiser's estimated trajectory is needed")
-    times, poses = read_tum(tpath)
-    frames = read_frames_csv(folder / "frames.csv")
-    # the run: where the localisation read it, else by name beside it or in ``search``
-    hint = Path(metrics["run_path"]) if metrics.get("run_path") else None
-    search = ([hint.parent] if hint is not None else []) + [Path(d) for d in search]
-    run = read_run(_find_run(metrics["run"], [hint], search))
-    if run.name != metrics["run"]:
-        raise DataError(mpath, f"names run {metrics['run']!r} but {run.root} holds run {run.name!r}")
-    n = len(run.frame_times)
-    if len(times) != n or len(frames["time"]) != n:
-        raise DataError(tpath, f"{len(times)} poses and {len(frames['time'])} frames.csv rows for run "
-                               f"{run.name!r} of {n} frames: not this run's localisation")
-    if not np.allclose(times, run.frame_times, atol=1e-5):
-        raise DataError(tpath, f"timestamps are not those of run {run.name!r}'s frames")
-    h = hashlib.sha256()
-    for name in ("metrics.json", "trajectory.tum", "frames.csv"):
-        data = (folder / name).read_bytes()
-        if name == "metrics.json":  # the machine-dependent parts (timings, paths) are not inputs
-            data = json.dumps({k: v for k, v in metrics.items()
-                               if k not in ("map", "run_path", "ms_per_detection", "ms_per_solve",
-                                            "ms_per_odometry_update", "realtime_factor", "wall_seconds")},
-                              sort_keys=True).encode()
-        h.update(hashlib.sha256(data).digest())
-    return Localisation(folder, metrics, times, np.asarray(poses).reshape(-1, 4, 4), frames, run, h.hexdigest())
 
 
 def _anchors(loc: Localisation) -> tuple[np.ndarray, np.ndarray]:
@@ -238,7 +191,7 @@ class _Runs:
 
     def __getitem__(self, name: str) -> SurveyRun:
         if name not in self._runs:
-            self._runs[name] = read_run(_find_run(name, [], self.search))
+            self._runs[name] = read_run(find_run(name, [], self.search))
         return self._runs[name]
 
 
@@ -334,7 +287,8 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
     Parameters
     ----------
     map_root : the map folder (updated in place unless ``out``).
-    localisations : ``scenesig localise`` output folders (their runs must still exist).
+    localisations : list of :class:`Localisation` (``scenesig localise`` outputs read by
+        :func:`localiser.outputs.read_localisation`; their runs must still exist).
     out : optional new map folder: the map is copied there first and updated there.
     runs_dirs : folders holding the map's training runs (default: the live runs' parent folders).
     config : overrides of :data:`default_config`.
@@ -342,7 +296,7 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
     Returns
     -------
     dict
-        The update summary (also ``update_summary.json`` in the map): ``generation``, ``updated``
+        The update summary (also ``update_summary.json`` in the map when it changed): ``generation``, ``updated``
         places, per localisation and place the rule's verdict, ``seconds_per_updated_place``,
         ``bytes_added``, and ``message`` when nothing was added.
     """
@@ -358,13 +312,9 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
         raise DataError(root / BUILD_JOURNAL, "a build of this map is unfinished; finish it before updating")
     store = MapStore.open(root, cache_size=0)
     doc = json.loads((root / MANIFEST).read_text(encoding="utf-8"))
-    hints = []
-    locs = []
-    for folder in localisations:
-        loc = read_localisation(folder, list(runs_dirs))
-        locs.append(loc)
-        hints.append(loc.run.root.parent)
-    runs = _Runs(list(runs_dirs) + [h for h in dict.fromkeys(hints)])
+    locs = list(localisations)
+    hints = [loc.run.root.parent for loc in locs if loc.run.root is not None]
+    runs = _Runs(list(runs_dirs) + list(dict.fromkeys(hints)))
     for loc in locs:
         runs.add(loc.run)
     inputs = _digest({"localisations": [loc.digest for loc in locs], "config": cfg})

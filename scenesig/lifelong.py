@@ -77,6 +77,7 @@ def _figure(rows: list[dict], path: Path) -> None:
 
 def run_lifelong(out="out/demo", jobs: int = 2, config: dict | None = None, demo_config: dict | None = None) -> dict:
     """The lifelong stage on a finished demo in ``out``; returns ``lifelong.json``'s content."""
+    from localiser.outputs import read_localisation
     from mapping.update import update_map
     from surveys.io import atomic_write_text
     from surveys.run import read_run
@@ -117,7 +118,8 @@ def run_lifelong(out="out/demo", jobs: int = 2, config: dict | None = None, demo
 
     _log(f"3/4 updating a copy of the map with {run_a}")
     t = time.perf_counter()
-    upd = update_map(base_map, [life / "localise" / "before" / run_a], out=life / "map", progress=True)
+    upd = update_map(base_map, [read_localisation(life / "localise" / "before" / run_a)], out=life / "map",
+                     progress=True)
     upd_seconds = time.perf_counter() - t
 
     _log(f"4/4 localising {run_b} and {other} against the updated map (after)")

@@ -47,11 +47,12 @@ def _contents(root: Path) -> dict:
 @pytest.fixture(scope="module")
 def reference_update(world, tmp_path_factory):
     """An uninterrupted update of the tiny map with the night localisation, into a new folder."""
+    from localiser.outputs import read_localisation
     from mapping.update import update_map
 
     root, loc = world
     out = tmp_path_factory.mktemp("updated") / "map"
-    summary = update_map(root, [loc], out=out, progress=False)
+    summary = update_map(root, [read_localisation(loc)], out=out, progress=False)
     return out, summary
 
 
@@ -102,8 +103,8 @@ def test_update_changes_only_the_weak_places(world, reference_update):
 
 
 def _update_process(root: Path, loc: Path) -> subprocess.Popen:
-    code = ("import sys; from mapping.update import update_map; "
-            "update_map(sys.argv[1], [sys.argv[2]], progress=False)")
+    code = ("import sys; from localiser.outputs import read_localisation; from mapping.update import update_map; "
+            "update_map(sys.argv[1], [read_localisation(sys.argv[2])], progress=False)")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.Popen([sys.executable, "-c", code, str(root), str(loc)], env=env, cwd=ROOT)
 

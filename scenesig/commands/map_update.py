@@ -18,11 +18,12 @@ def register(groups):
 
 
 def run(args) -> int:
+    from localiser.outputs import read_localisation
     from mapping.build import load_config
     from mapping.update import update_map
 
-    summary = update_map(args.map, args.localisations, out=args.out, runs_dirs=args.runs_dir,
-                         config=load_config(args.config))
+    locs = [read_localisation(folder, args.runs_dir) for folder in args.localisations]
+    summary = update_map(args.map, locs, out=args.out, runs_dirs=args.runs_dir, config=load_config(args.config))
     keys = ("map", "generation", "updated", "signatures_added", "bytes_added", "seconds_per_updated_place",
             "message")
     print(json.dumps({k: summary[k] for k in keys if k in summary}, indent=1))
