@@ -53,7 +53,7 @@ def _localise(map_root: Path, run_root: Path, out: Path, every: int) -> dict:
     return localise(map_root, run_root, out, method="signatures", every=every, progress=False)
 
 
-def _figure(rows: list[dict], path: Path) -> None:
+def _figure(rows: list[dict], path: Path, updated: list) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -67,8 +67,10 @@ def _figure(rows: list[dict], path: Path) -> None:
         vals = [r[key] if r[key] is not None else 0.0 for r in rows]
         ax.bar(range(len(rows)), vals, color=["#999" if r["map"] == "before" else "#2a7" for r in rows])
         ax.set_xticks(range(len(rows)), labels, fontsize=7)
+        ax.set_ylim(0, max(1.0 if key == "failures" else 0.0, max(vals) * 1.15) or 1.0)
         ax.set_title(title)
-    fig.suptitle("Lifelong map: before / after adding run A's weak places")
+    fig.suptitle("Lifelong map: before / after adding run A's weak places "
+                 + (f"(places {updated})" if updated else "(no place was weak: nothing added)"))
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
@@ -150,7 +152,7 @@ def run_lifelong(out="out/demo", jobs: int = 2, config: dict | None = None, demo
     res_dir = life / "result"
     res_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(res_dir / "lifelong.json", json.dumps(result, indent=1, allow_nan=False) + "\n")
-    _figure(rows, res_dir / "lifelong.png")
+    _figure(rows, res_dir / "lifelong.png", upd["updated"])
     print_table(rows)
     _log(f"targets: {json.dumps(targets)}")
     return result
