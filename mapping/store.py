@@ -9,6 +9,10 @@ Layout of ``maps/NAME/``::
                              per-place metadata and, optionally, the point-feature map (``points/``: ORB/SIFT
                              keypoints, descriptors and 3D points of the reference keyframe)
     journal.jsonl            only while a build runs: header + one line per place written (for resume)
+    places/place_0007.g0001.npz   the place as rewritten by lifelong update generation 1 (mapping.update);
+                             the manifest's ``generation``, ``history`` and places' ``extra["experiences"]``
+                             say which runs went into it
+    update.jsonl             only while a lifelong update runs (mapping.update)
 
 Guarantees:
 
