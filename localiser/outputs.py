@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 
 __all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "reference_path", "map_relative_truth", "compute_metrics",
            "write_frames_csv", "read_frames_csv", "write_outputs", "detection_rates",
-           "read_localisation"]
+           "read_output_files", "read_localisation"]
 
 #: Columns of ``frames.csv``.
 FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
@@ -215,6 +215,36 @@ def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_
     return metrics
 
 
+def read_output_files(folder):
+    """``(metrics, frames, times, poses)`` of a localise output folder: ``metrics.json`` (a dict with at
+    least ``method`` and ``run``), ``frames.csv`` (:func:`read_frames_csv`) and ``trajectory.tum``
+    (one pose per frame, at the frames' times); DataError naming the file if one is missing or wrong."""
+    folder = Path(folder)
+    mpath = folder / "metrics.json"
+    if not mpath.is_file():
+        raise DataError(mpath, "missing: not a `scenesig localise` output folder")
+    try:
+        metrics = json.loads(mpath.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise DataError(mpath, f"invalid JSON: {exc.msg}", line=exc.lineno) from None
+    if not isinstance(metrics, dict) or "method" not in metrics or "run" not in metrics:
+        raise DataError(mpath, "expected an object with at least 'method' and 'run'")
+    fpath = folder / "frames.csv"
+    if not fpath.is_file():
+        raise DataError(fpath, "missing")
+    frames = read_frames_csv(fpath)
+    tpath = folder / "trajectory.tum"
+    if not tpath.is_file():
+        raise DataError(tpath, "missing")
+    times, poses = read_tum(tpath)
+    n = len(frames["time"])
+    if len(times) != n:
+        raise DataError(tpath, f"{len(times)} poses but frames.csv has {n} frames")
+    if n and np.max(np.abs(times - frames["time"])) > 1e-3:
+        raise DataError(tpath, "times differ from frames.csv's")
+    return metrics, frames, times, poses
+
+
 def read_localisation(folder, search=()):
     """Read a ``scenesig localise`` output back as a :class:`mapping.update.Localisation` (for ``scenesig
     map update``); the run is found by ``metrics.json``'s ``run_path``, else by its name beside it or in
@@ -223,23 +253,11 @@ def read_localisation(folder, search=()):
 
     folder = Path(folder)
     mpath = folder / "metrics.json"
-    if not mpath.is_file():
-        raise DataError(mpath, "missing: not a scenesig localise output folder")
-    try:
-        metrics = json.loads(mpath.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(mpath, f"not valid JSON: {exc}") from None
-    for key in ("run", "method"):
-        if key not in metrics:
-            raise DataError(mpath, f"lacks {key!r}")
+    metrics, frames, times, poses = read_output_files(folder)
     if metrics["method"] != "signatures":
         raise DataError(mpath, f"method is {metrics['method']!r}: only a scene-signature localisation tells "
                                f"where the map's signatures were weak")
     tpath = folder / "trajectory.tum"
-    if not tpath.is_file():
-        raise DataError(tpath, "missing: the localiser's estimated trajectory is needed")
-    times, poses = read_tum(tpath)
-    frames = read_frames_csv(folder / "frames.csv")
     # the run: where the localisation read it, else by name beside it or in ``search``
     hint = Path(metrics["run_path"]) if metrics.get("run_path") else None
     search = ([hint.parent] if hint is not None else []) + [Path(d) for d in search]
@@ -247,9 +265,8 @@ def read_localisation(folder, search=()):
     if run.name != metrics["run"]:
         raise DataError(mpath, f"names run {metrics['run']!r} but {run.root} holds run {run.name!r}")
     n = len(run.frame_times)
-    if len(times) != n or len(frames["time"]) != n:
-        raise DataError(tpath, f"{len(times)} poses and {len(frames['time'])} frames.csv rows for run "
-                               f"{run.name!r} of {n} frames: not this run's localisation")
+    if len(times) != n:
+        raise DataError(tpath, f"{len(times)} poses for run {run.name!r} of {n} frames: not this run's localisation")
     if not np.allclose(times, run.frame_times, atol=1e-5):
         raise DataError(tpath, f"timestamps are not those of run {run.name!r}'s frames")
     h = hashlib.sha256()
