@@ -317,29 +317,6 @@ def _ins_pose(run, frame: int) -> np.ndarray:
     return interpolate_poses(run.groundtruth_times, run.groundtruth_poses, run.frame_times[int(frame)])
 
 
-def _solve_image(bank, landmarks, covariances, image, camera, T_vc, Q, area_ref: float, cfg: dict) -> RelativePose:
-    """Fire the bank on one image and solve its pose relative to the place (eq. 5 covariances)."""
-    d = bank.detect(image, top_n=1)
-    x, y, prob, s = d.x[:, 0], d.y[:, 0], d.prob[:, 0], d.scale[:, 0]
-    good = np.isfinite(x) & np.isfinite(y) & (prob >= float(cfg["min_probability"])) & (s > 0)
-    uv = np.where(good[:, None], np.column_stack([x, y]), np.nan)
-    a = np.nan_to_num(d.width[:, 0] * d.height[:, 0], nan=area_ref) / area_ref
-    kq = np.where(good, a / np.where(good, prob * s, 1.0), 1.0)
-    R = kq[:, None, None] * Q[None]                  # eq. 5
-    return solve_relative_pose(uv, landmarks, camera, T_vc, R, covariances, cfg)
-
-
-def solve_view_pose(bank, landmarks, covariances, image, camera, T_vc, Q=None, config: dict | None = None) -> RelativePose:
-    """Pose of one image relative to a place (robust PnP on the place's bank and landmarks), as
-    :func:`observe_place` solves each training run's image; ``.ok`` says whether it is usable."""
-    cfg = _merge(config)
-    Q = np.asarray(refine_defaults["Q"] if Q is None else Q, float)
-    areas = np.array([c.box[2] * c.box[3] for c in bank.classifiers], float) if len(bank) else np.zeros(0)
-    area_ref = float(np.median(areas)) if len(areas) and np.all(areas > 0) else 1.0
-    return _solve_image(bank, np.asarray(landmarks, float).reshape(-1, 3),
-                        np.asarray(covariances, float).reshape(-1, 3, 3), image, camera, T_vc, Q, area_ref, cfg)
-
-
 def observe_place(place, views: list, images: list, bank, landmarks, covariances, Q=None,
                   config: dict | None = None) -> list[dict]:
     """Each training run's estimate of the place's world pose (JSON records for the place file).
@@ -380,8 +357,14 @@ def observe_place(place, views: list, images: list, bank, landmarks, covariances
             rec.update(ok=False, reason="no_signatures", T_place_vehicle=None, position_sigma_m=None,
                        detections=0, inliers=0, rms_px=None)
         else:
-            rp = _solve_image(bank, landmarks, covariances, img, v.run.camera, v.run.T_vehicle_camera, Q, area_ref,
-                              cfg)
+            d = bank.detect(img, top_n=1)
+            x, y, prob, s = d.x[:, 0], d.y[:, 0], d.prob[:, 0], d.scale[:, 0]
+            good = np.isfinite(x) & np.isfinite(y) & (prob >= float(cfg["min_probability"])) & (s > 0)
+            uv = np.where(good[:, None], np.column_stack([x, y]), np.nan)
+            a = np.nan_to_num(d.width[:, 0] * d.height[:, 0], nan=area_ref) / area_ref
+            kq = np.where(good, a / np.where(good, prob * s, 1.0), 1.0)
+            R = kq[:, None, None] * Q[None]                  # eq. 5
+            rp = solve_relative_pose(uv, landmarks, v.run.camera, v.run.T_vehicle_camera, R, covariances, cfg)
             rec.update(ok=bool(rp.ok), reason=rp.reason,
                        T_place_vehicle=None if rp.T_place_vehicle is None else rp.T_place_vehicle.tolist(),
                        position_sigma_m=None if rp.covariance is None else rp.position_sigma_m,

@@ -9,12 +9,9 @@ and without ground truth:
    ``min_inliers_per_detection`` solver inliers per detection (pooled over its frames);
 2. *the live frame* -- the run's frame nearest the place (position, and heading within
    ``max_heading_error_deg``) by the localiser's **own estimated trajectory** (``trajectory.tum``;
-   never ``truth.tum`` or the INS).  Its estimated pose is the localiser's estimate at the run's nearest
-   accepted localisation carried to the frame by the run's odometry, so a frame is used only within
-   ``max_blind_m`` of odometry of one (an oracle reset does not count).  Its pose relative to the
-   place, ``T_place_vehicle``, is then solved against the place's own landmarks (robust PnP, as the
-   build's georeferencing does) when that succeeds within ``max_pose_correction_m`` of the estimate,
-   else the estimate is used (``experiences[].pose_source``);
+   never ``truth.tum`` or the INS).  Its pose relative to the place, ``T_place_vehicle``, is the
+   estimate at the run's nearest accepted localisation carried to the frame by the run's odometry, so
+   a frame is used only within ``max_blind_m`` of odometry of one (an oracle reset does not count);
 3. *re-mining* -- :func:`mapping.build.mine_and_refine` on the live frame first, then the place's
    build-time training images and its earlier experiences, with the build's negatives and seed; the
    survivors go through the temporal check and the depth refinement over the live run's ±10 m window
@@ -72,9 +69,6 @@ default_config = {
     "max_blind_m": 20.0,
     "max_position_error_m": 8.0,      # the nearest estimated frame must be this close to the place
     "max_heading_error_deg": 30.0,    # ... and face the same way
-    # a PnP pose of the live frame against the place's landmarks replaces the estimate when within this
-    # (m): the estimate is good to the localiser's odometry drift over max_blind_m, well under 2 m
-    "max_pose_correction_m": 2.0,
 }
 
 
@@ -260,25 +254,6 @@ def _append(path: Path, obj) -> None:
         os.fsync(fh.fileno())
 
 
-def _place_pose(data: PlaceData, live, T_est: np.ndarray, bcfg: dict, cfg: dict) -> tuple[np.ndarray, str]:
-    """The live frame's pose relative to the place: solved against the place's own landmarks (robust
-    PnP, as georeferencing solves each training run's image) when that succeeds and lies within
-    ``max_pose_correction_m`` of the localiser's estimate ``T_est`` -- the new landmarks then inherit
-    the map's frame rather than the live run's estimation error; else ``T_est``."""
-    from mapping.georef import solve_view_pose
-
-    bank = Bank.from_arrays(data.bank_arrays)
-    if not len(bank):
-        return T_est, "estimate"
-    rp = solve_view_pose(bank, data.landmarks, data.covariances, live.run.image(live.frame, gray=True),
-                         live.run.camera, live.run.T_vehicle_camera, Q=bcfg["refine"].get("Q"),
-                         config=bcfg["georeference"])
-    if rp.ok and rp.T_place_vehicle is not None and \
-            np.linalg.norm(rp.T_place_vehicle[:3, 3] - T_est[:3, 3]) <= cfg["max_pose_correction_m"]:
-        return np.asarray(rp.T_place_vehicle, float), "pnp"
-    return T_est, "estimate"
-
-
 def _new_place(old: PlaceData, place, views, negatives, cfg, T_place_vehicle) -> tuple[PlaceData, int]:
     """The old place plus the classifiers mined with ``views[0]`` (the live frame) first."""
     from threadpoolctl import threadpool_limits
@@ -395,14 +370,13 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
         negs = place_negatives(places[i], ref_frames, reference, bcfg)
         for loc, rec in todo[i]:
             live = places_mod.odometry_view(loc.run, rec["frame"], bcfg["places"], rec["position_error_m"])
-            T_est = invert(store.places[i].T_world_place) @ _live_pose(loc, rec["frame"], rec["anchor_frame"])
-            T_pv, source = _place_pose(data, live, T_est, bcfg, cfg)
+            T_pv = invert(store.places[i].T_world_place) @ _live_pose(loc, rec["frame"], rec["anchor_frame"])
             data, k = _new_place(data, places[i], [live] + base + earlier, negs, bcfg, T_pv)
             earlier.append(live)
             new_exp.append({"run": loc.run.name, "conditions": list(loc.run.conditions), "frame": int(rec["frame"]),
                             "run_start_time": float(loc.run.frame_times[0]), "generation": gen,
                             "reason": rec["reason"], "inliers_per_detection": rec["inliers_per_detection"],
-                            "signatures_added": int(k), "pose_source": source,
+                            "signatures_added": int(k),
                             "T_place_vehicle": [[float(x) for x in row] for row in T_pv]})
         raw = encode_place(i, data, float(storage.get("float16_tol", 4e-3)),
                            float16_min_size=int(storage.get("float16_min_size", 4096)))
