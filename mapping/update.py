@@ -113,9 +113,12 @@ def _anchors(loc: Localisation) -> tuple[np.ndarray, np.ndarray]:
     ok = np.nonzero(loc.frames["localised"] > 0)[0]
     if not len(ok):
         return np.full(len(s), -1), np.full(len(s), np.inf)
-    d = np.abs(s[:, None] - s[None, ok])
-    j = np.argmin(d, axis=1)
-    return ok[j], d[np.arange(len(s)), j]
+    # arc length never decreases: the nearest localisation is one of the two around each frame
+    right = np.searchsorted(s[ok], s).clip(0, len(ok) - 1)
+    left = (right - 1).clip(0, len(ok) - 1)
+    d_left, d_right = np.abs(s - s[ok][left]), np.abs(s[ok][right] - s)
+    j = np.where(d_left <= d_right, left, right)
+    return ok[j], np.minimum(d_left, d_right)
 
 
 def _live_pose(loc: Localisation, frame: int, anchor: int) -> np.ndarray:
