@@ -437,6 +437,10 @@ class MapStore:
                                   f"has {digest[:16]}... (corrupt, truncated or modified after the build)")
         return raw
 
+    def place_bytes(self, index: int) -> bytes:
+        """The checksum-verified bytes of place ``index``'s file (e.g. to copy the map)."""
+        return self._read_place_bytes(self.places[int(index)])
+
     def refresh(self) -> bool:
         """Re-read the manifest if a lifelong update replaced it; True if the map changed generation.
 

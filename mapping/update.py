@@ -213,7 +213,7 @@ def _copy_map(src: Path, dst: Path) -> None:
     for meta in store.places.values():
         target = dst / meta.file
         if not (target.is_file() and hashlib.sha256(target.read_bytes()).hexdigest() == meta.sha256):
-            atomic_write_bytes(target, store._read_place_bytes(meta))
+            atomic_write_bytes(target, store.place_bytes(meta.index))
     for name in ("build_summary.json",):
         if (src / name).is_file():
             shutil.copyfile(src / name, dst / name)
