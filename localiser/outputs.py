@@ -80,8 +80,8 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     ``ms_per_detection``, ``ms_per_solve``, ``ms_per_odometry_update``, ``realtime_factor`` (data
     duration / wall time of the replay), ``wall_seconds``; bookkeeping ``mode``, ``every``,
     ``distance_m``, ``duration_s``, ``frames``, ``frames_evaluated``, ``detector_frames``,
-    ``localisations``, ``truth_source``, ``map``, ``run_path`` (the run folder, for ``scenesig map
-    update``); detection rates ``detections_per_frame_mean`` and ``inliers_per_detection_mean``
+    ``localisations``, ``truth_source``, ``map``, ``map_generation`` (lifelong updates), ``run_path``
+    (the run folder, for ``scenesig map update``); detection rates ``detections_per_frame_mean`` and ``inliers_per_detection_mean``
     (:func:`detection_rates`); and in real-time mode ``frames_dropped`` and
     ``frames_detected``.  Without ``truth.tum`` the errors are taken against ``groundtruth.tum``
     (``truth_source``).
@@ -137,6 +137,7 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         **detection_rates(result.detections[result.detector_ran], result.inliers[result.detector_ran]),
         "truth_source": source,
         "map": str(store.root),
+        "map_generation": int(store.generation),
         "run_path": str(Path(run.root).resolve()) if run.root is not None else None,
     }
     for k in ("frames_dropped", "frames_detected"):

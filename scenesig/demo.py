@@ -106,7 +106,7 @@ def print_table(rows: list[dict], file=sys.stdout) -> None:
 
 def build_demo_report(out, config: dict | None = None, live_names: list[str] | None = None) -> Path:
     """The demo's report (``DIR/report``) from its localisations, matching experiment and, when the
-    lifelong stage has run, its result (``DIR/lifelong/result``)."""
+    lifelong stage has run, its results (``DIR/lifelong/CONDITION/result``)."""
     from .report import build_report
 
     out = Path(out)
@@ -114,7 +114,7 @@ def build_demo_report(out, config: dict | None = None, live_names: list[str] | N
     if live_names is None:
         names = [r["name"] for r in json.loads((out / "world" / "simulate_summary.json").read_text())["runs"]]
         live_names = names[len(cfg["training"]):]
-    extra = [out / "lifelong" / "result"] if (out / "lifelong" / "result" / "lifelong.json").is_file() else []
+    extra = sorted(f.parent for f in (out / "lifelong").glob("*/result/lifelong.json"))
     return build_report([out / "localise", out / "matching", *extra], out / "report",
                         runs=[out / "world" / n for n in live_names])
 

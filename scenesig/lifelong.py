@@ -6,12 +6,12 @@ A condition the map never trained on (``autumn`` by default; ``morning`` is the 
    drives differ from every training run's);
 2. localise A and B against the demo's map (scene signatures; *before*);
 3. update a copy of the map with A (``scenesig map update``, :mod:`mapping.update`) into
-   ``DIR/lifelong/map`` -- the demo's map is left as it was;
+   ``DIR/lifelong/CONDITION/map`` -- the demo's map is left as it was;
 4. localise B and one other live run of the demo (night by default) against the updated map (*after*);
-5. ``DIR/lifelong/result/lifelong.json`` (table rows, the update summary, the targets) and
+5. ``DIR/lifelong/CONDITION/result/lifelong.json`` (table rows, the update summary, the targets) and
    ``lifelong.png``, which the report shows in its "Lifelong map" section.
 
-Layout of ``DIR/lifelong``: ``localise/{before,after}/RUN/``, ``map/``, ``result/``.
+Layout of ``DIR/lifelong/CONDITION``: ``localise/{before,after}/RUN/``, ``map/``, ``result/``.
 """
 from __future__ import annotations
 
@@ -45,10 +45,14 @@ def _row(label: str, map_name: str, metrics: dict) -> dict:
 def _localise(map_root: Path, run_root: Path, out: Path, every: int) -> dict:
     from localiser.replay import localise
 
+    from mapping.store import MapStore
+
     done = out / "metrics.json"
     if done.is_file() and (out / "trajectory.tum").is_file():
         m = json.loads(done.read_text())
-        if "inliers_per_detection_mean" in m:
+        # reused only if made against this map at its current generation
+        if "inliers_per_detection_mean" in m and Path(m["map"]).resolve() == Path(map_root).resolve() \
+                and m.get("map_generation", 0) == MapStore.open(map_root).generation:
             return m
     return localise(map_root, run_root, out, method="signatures", every=every, progress=False)
 
@@ -92,7 +96,7 @@ def run_lifelong(out="out/demo", jobs: int = 2, config: dict | None = None, demo
     if cfg["condition"] in dcfg["training"]:
         raise ValueError(f"condition {cfg['condition']!r} is among the map's training conditions")
     out = Path(out)
-    world, base_map, life = out / "world", out / "map", out / "lifelong"
+    world, base_map, life = out / "world", out / "map", out / "lifelong" / cfg["condition"]
     summary = json.loads((world / "simulate_summary.json").read_text())
     names = [r["name"] for r in summary["runs"]]
     n_train = len(dcfg["training"])

@@ -267,7 +267,7 @@ def _lifelong_section(results, fig_dir: Path, out: Path) -> list[str]:
         except (OSError, json.JSONDecodeError) as exc:
             raise DataError(path, f"unreadable: {exc}") from None
         u = res.get("update", {})
-        parts += ["<h2>Lifelong map</h2>",
+        parts += [f"<h2>Lifelong map ({html.escape(res['condition'])})</h2>",
                   f"<p class='note'>Condition never trained: <b>{html.escape(res['condition'])}</b>. Run A "
                   f"({html.escape(res['run_a'])}) was localised and its weak places added to a copy of the map "
                   f"(places {html.escape(str(u.get('updated')))}, generation {u.get('generation')}, "

@@ -16,6 +16,8 @@ def register(groups):
     p.add_argument("--lifelong", action="store_true",
                    help="then the lifelong-map stage: an unseen condition's run A updates the map; run B of it "
                         "and another live run are localised before and after (scenesig/lifelong.py)")
+    p.add_argument("--lifelong-condition", choices=["autumn", "morning"], default="autumn",
+                   help="the never-trained condition of the lifelong stage (default autumn)")
     p.set_defaults(_run=run)
 
 
@@ -30,6 +32,7 @@ def run(args) -> int:
         from scenesig.demo import build_demo_report
         from scenesig.lifelong import run_lifelong
 
-        run_lifelong(args.out, jobs=int(args.jobs), demo_config=config)
+        run_lifelong(args.out, jobs=int(args.jobs), demo_config=config,
+                     config={"condition": getattr(args, "lifelong_condition", None) or "autumn"})
         build_demo_report(args.out, config)
     return 0
