@@ -63,7 +63,7 @@ SUMMARY = "update_summary.json"
 default_config = {
     # a place is weak below this many solver inliers per detection (pooled over its frames); chosen on
     # training runs localised against their own map (tiny test world, overcast and night): places
-    # with accepted localisations had 0.53-0.94, places where the localiser was lost 0
+    # with accepted localisations had 0.53 and 0.74, places where the localiser was lost 0
     "min_inliers_per_detection": 0.5,
     # the live frame's pose is carried from an accepted localisation by at most this much odometry (m):
     # the localiser's own failure distance (McManus et al. 2015, §4.3): it trusts its odometry that far
