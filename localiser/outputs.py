@@ -9,6 +9,7 @@ columns, used by its writer and its reader :func:`read_frames_csv`.
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -18,7 +19,8 @@ import numpy as np
 from mapping.store import MapStore
 from surveys.errors import DataError
 from surveys.io import atomic_write_text, make_dirs
-from surveys.tum import write_tum
+from surveys.run import read_run
+from surveys.tum import read_tum, write_tum
 
 from .evaluation import ReferencePath, evaluate, summary
 
@@ -26,7 +28,8 @@ if TYPE_CHECKING:
     from .replay import ReplayResult
 
 __all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "reference_path", "map_relative_truth", "compute_metrics",
-           "write_frames_csv", "read_frames_csv", "write_outputs"]
+           "write_frames_csv", "read_frames_csv", "write_outputs", "detection_rates",
+           "read_output_files", "read_localisation"]
 
 #: Columns of ``frames.csv``.
 FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
@@ -77,10 +80,13 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     ``ms_per_detection``, ``ms_per_solve``, ``ms_per_odometry_update``, ``realtime_factor`` (data
     duration / wall time of the replay), ``wall_seconds``; bookkeeping ``mode``, ``every``,
     ``distance_m``, ``duration_s``, ``frames``, ``frames_evaluated``, ``detector_frames``,
-    ``localisations``, ``truth_source``, ``map``, ``frames_corrupt`` and ``corrupt_frames`` (frames
-    skipped: image truncated or corrupt), and in real-time mode ``frames_dropped`` (stale frames
-    dropped), ``frames_detected``, ``odometry_queue_max`` (most samples due at once),
-    ``odometry_coalesced`` (samples composed into a later one) and ``lag_max_s``.  Without ``truth.tum`` the errors are taken against ``groundtruth.tum``
+    ``localisations``, ``truth_source``, ``map``, ``map_generation`` (lifelong updates), ``run_path``
+    (the run folder, for ``scenesig map update``); detection rates ``detections_per_frame_mean`` and
+    ``inliers_per_detection_mean`` (:func:`detection_rates`); ``frames_corrupt`` and ``corrupt_frames`` (frames
+    skipped: image truncated or corrupt); ``method_config`` (the method's settings); and in real-time mode
+    ``frames_dropped`` (stale frames dropped), ``frames_detected``, ``odometry_queue_max`` (most samples due at
+    once), ``odometry_coalesced`` (samples composed into a later one) and ``lag_max_s``.  Without ``truth.tum``
+    the errors are taken against ``groundtruth.tum``
     (``truth_source``).
     """
     run = result.run
@@ -131,17 +137,30 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         "frames_evaluated": m["frames_evaluated"],
         "detector_frames": int(result.detector_ran.sum()),
         "localisations": int(result.localised.sum()),
+        **detection_rates(result.detections[result.detector_ran], result.inliers[result.detector_ran]),
         "truth_source": source,
         "map": str(store.root),
         # frames whose image failed strict decoding (truncated or corrupt): skipped, odometry went on
         "frames_corrupt": len(result.corrupt),
         "corrupt_frames": [run.frame_files[i] for i in result.corrupt] if run.frame_files else [],
         "method_config": result.method_config,
+        "map_generation": int(store.generation),
+        "run_path": str(Path(run.root).resolve()) if run.root is not None else None,
     }
     for k in ("frames_dropped", "frames_detected", "odometry_queue_max", "odometry_coalesced", "lag_max_s"):
         if k in tm:
             metrics[k] = tm[k]
     return metrics, ev
+
+
+def detection_rates(detections, inliers) -> dict:
+    """``detections_per_frame_mean`` (detections per detector frame) and ``inliers_per_detection_mean``
+    (inliers of the pose solve per detection, pooled over those frames: total inliers / total
+    detections; None without detections) of the frames the detector ran on."""
+    d = np.asarray(detections, dtype=float)
+    k = np.asarray(inliers, dtype=float)
+    return {"detections_per_frame_mean": float(d.mean()) if d.size else None,
+            "inliers_per_detection_mean": float(k.sum() / d.sum()) if d.sum() > 0 else None}
 
 
 def _fmt(v: float) -> str:
@@ -202,3 +221,67 @@ def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_
 
         plot_trajectory(out / "trajectory.png", result, store, ev, metrics)
     return metrics
+
+
+def read_output_files(folder):
+    """``(metrics, frames, times, poses)`` of a localise output folder: ``metrics.json`` (a dict with at
+    least ``method`` and ``run``), ``frames.csv`` (:func:`read_frames_csv`) and ``trajectory.tum``
+    (one pose per frame, at the frames' times); DataError naming the file if one is missing or wrong."""
+    folder = Path(folder)
+    mpath = folder / "metrics.json"
+    if not mpath.is_file():
+        raise DataError(mpath, "missing: not a `scenesig localise` output folder")
+    try:
+        metrics = json.loads(mpath.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise DataError(mpath, f"invalid JSON: {exc.msg}", line=exc.lineno) from None
+    if not isinstance(metrics, dict) or "method" not in metrics or "run" not in metrics:
+        raise DataError(mpath, "expected an object with at least 'method' and 'run'")
+    fpath = folder / "frames.csv"
+    if not fpath.is_file():
+        raise DataError(fpath, "missing")
+    frames = read_frames_csv(fpath)
+    tpath = folder / "trajectory.tum"
+    if not tpath.is_file():
+        raise DataError(tpath, "missing")
+    times, poses = read_tum(tpath)
+    n = len(frames["time"])
+    if len(times) != n:
+        raise DataError(tpath, f"{len(times)} poses but frames.csv has {n} frames")
+    if n and np.max(np.abs(times - frames["time"])) > 1e-3:
+        raise DataError(tpath, "times differ from frames.csv's")
+    return metrics, frames, times, poses
+
+
+def read_localisation(folder, search=()):
+    """Read a ``scenesig localise`` output back as a :class:`mapping.update.Localisation` (for ``scenesig
+    map update``); the run is found by ``metrics.json``'s ``run_path``, else by its name beside it or in
+    the folders ``search``.  DataError naming the file if something is missing or inconsistent."""
+    from mapping.update import Localisation, find_run
+
+    folder = Path(folder)
+    mpath = folder / "metrics.json"
+    metrics, frames, times, poses = read_output_files(folder)
+    if metrics["method"] != "signatures":
+        raise DataError(mpath, f"method is {metrics['method']!r}: only a scene-signature localisation tells "
+                               f"where the map's signatures were weak")
+    tpath = folder / "trajectory.tum"
+    # the run: where the localisation read it, else by name beside it or in ``search``
+    hint = Path(metrics["run_path"]) if metrics.get("run_path") else None
+    search = ([hint.parent] if hint is not None else []) + [Path(d) for d in search]
+    run = read_run(find_run(metrics["run"], [hint], search))
+    if run.name != metrics["run"]:
+        raise DataError(mpath, f"names run {metrics['run']!r} but {run.root} holds run {run.name!r}")
+    n = len(run.frame_times)
+    if len(times) != n:
+        raise DataError(tpath, f"{len(times)} poses for run {run.name!r} of {n} frames: not this run's localisation")
+    if not np.allclose(times, run.frame_times, atol=1e-5):
+        raise DataError(tpath, f"timestamps are not those of run {run.name!r}'s frames")
+    h = hashlib.sha256()
+    for name in ("metrics.json", "trajectory.tum", "frames.csv"):
+        data = (folder / name).read_bytes()
+        if name == "metrics.json":  # the machine-dependent parts (timings, paths) are not inputs
+            data = json.dumps({k: v for k, v in metrics.items() if k not in (*TIMING_KEYS, "map", "run_path")},
+                              sort_keys=True).encode()
+        h.update(hashlib.sha256(data).digest())
+    return Localisation(folder, metrics, times, np.asarray(poses).reshape(-1, 4, 4), frames, run, h.hexdigest())

@@ -36,6 +36,7 @@ import json
 import logging
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +58,8 @@ from mapping.refine import Detections, REASONS, refine_landmarks
 from mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
 from surveys.io import atomic_write_bytes
 
-__all__ = ["default_config", "build_map", "build_place", "mining_images", "vet_images", "load_config"]
+__all__ = ["default_config", "build_map", "build_place", "mine_and_refine", "MinedPlace", "mining_images",
+           "place_views", "place_negatives", "vet_images", "load_config"]
 
 log = logging.getLogger(__name__)
 
@@ -182,15 +184,15 @@ def frames_per_run(cfg: dict, n_runs: int) -> int:
     return int(min(cfg["max_frames_per_run"], max(1, math.ceil(cfg["min_images"] / max(1, n_runs)))))
 
 
-def mining_images(place: places_mod.Place, views: list, images: list, config: dict | None = None):
+def mining_images(seed: int, views: list, images: list, config: dict | None = None):
     """The images a place is mined from, and their alignment offsets.
 
     ``images[k]`` is the training frame of ``views[k]`` (the reference run's first); these come first
     and in that order, so with one frame per run and enough runs mining sees exactly the paper's
     training set.  Then each run's neighbouring frames (:func:`mapping.places.neighbour_frames`, within
     the place's segment), then -- while the place has fewer than ``min_images`` -- photometrically
-    augmented copies of the frames in turn (:func:`signatures.augment.augment`; seeded by the place, so
-    a build repeats), each offset by its known shift.
+    augmented copies of the frames in turn (:func:`signatures.augment.augment`; seeded by ``seed``, the
+    place index at build time, so a build repeats), each offset by its known shift.
 
     Returns
     -------
@@ -210,7 +212,7 @@ def mining_images(place: places_mod.Place, views: list, images: list, config: di
             out.append(v.run.image(int(j), gray=True))
     n_frames = len(out)
     offsets = [[0.0, 0.0]] * n_frames
-    rng = np.random.default_rng([place.index, 19])
+    rng = np.random.default_rng([int(seed), 19])
     k = 0
     while len(out) < int(cfg["min_images"]):
         copy, shift = augment(out[k % n_frames], rng, float(cfg["augment_shift_px"]))
@@ -251,15 +253,44 @@ def build_place(place: places_mod.Place, views: list, negatives: list[np.ndarray
         return _build_place(place, views, negatives, config)
 
 
-def _build_place(place, views, negatives, config):
-    cfg = _merge(config)
-    t0 = time.perf_counter()
+@dataclass
+class MinedPlace:
+    """What mining and landmark refinement make of one place's views (:func:`mine_and_refine`).
+
+    ``bank`` holds the kept classifiers; ``landmarks`` (n, 3), ``covariances`` (n, 3, 3) and ``depths``
+    (n,) are in the vehicle frame of ``views[0]``'s training frame; ``boxes`` (n, 2) are the kept
+    classifiers' firings there (NaN where none), ``ref_size`` (n, 2) / ``ref_scale`` (n,) the size and
+    scale of firings the landmark explains (NaN otherwise); ``images`` the views' gray training images.
+    """
+
+    bank: object
+    landmarks: np.ndarray
+    covariances: np.ndarray
+    depths: np.ndarray
+    boxes: np.ndarray
+    ref_size: np.ndarray
+    ref_scale: np.ndarray
+    mined: int
+    rejected: dict
+    mining: object
+    images: list
+    n_images: int = 0             # images mined: frames and augmented copies (:func:`mining_images`)
+    image_counts: dict = None     # frames_per_run, frames, augmented
+
+
+def mine_and_refine(views: list, negatives: list[np.ndarray], cfg: dict, rng: int) -> MinedPlace:
+    """Mining (§3.2) of the views' training images, then the temporal check and depth refinement
+    (§3.2.1) of every survivor over ``views[0]``'s window, with that run's odometry.
+
+    ``views[0]`` is the frame the landmarks are expressed in (at build time the reference run's view;
+    a lifelong update passes the live run's view, :mod:`mapping.update`).  ``cfg`` is a merged build
+    configuration; ``rng`` seeds mining.
+    """
     ref = views[0]
     camera, T_vc = ref.run.camera, ref.run.T_vehicle_camera
     images = [v.run.image(v.frame, gray=True) for v in views]
-    mined_from, offsets, image_counts = mining_images(place, views, images, cfg)
-    bank, mstats = mine_place(mined_from, offsets, config=cfg["mining"], negatives=negatives, n_jobs=1,
-                              rng=place.index)
+    mined_from, offsets, image_counts = mining_images(rng, views, images, cfg)
+    bank, mstats = mine_place(mined_from, offsets, config=cfg["mining"], negatives=negatives, n_jobs=1, rng=rng)
 
     window = _subsample(ref.window, ref.frame, cfg["max_window_frames"], ref.T_frame_window[:, :3, 3])
     rows = np.searchsorted(ref.window, window)
@@ -302,10 +333,25 @@ def _build_place(place, views, negatives, config):
         ref_size = np.where(at_ref[:, None], size[keep, reference], np.nan)
         ref_scale = np.where(at_ref, scale[keep, reference], np.nan)
     else:
-        keep = np.zeros(0, int)
         kept_bank = bank
         landmarks, covs, depths = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
-        boxes = np.zeros((0, 2))
+        boxes, ref_size, ref_scale = np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
+    rejected = {"no_data": int(mstats.rejected_no_data), "textureless": int(mstats.rejected_textureless),
+                "not_converged": int(mstats.rejected_not_converged), **counts}
+    return MinedPlace(kept_bank, landmarks, covs, depths, boxes, ref_size, ref_scale, int(n), rejected, mstats,
+                      images, len(mined_from), image_counts)
+
+
+def _build_place(place, views, negatives, config):
+    cfg = _merge(config)
+    t0 = time.perf_counter()
+    ref = views[0]
+    camera, T_vc = ref.run.camera, ref.run.T_vehicle_camera
+    mp = mine_and_refine(views, negatives, cfg, rng=place.index)
+    images, kept_bank, n = mp.images, mp.bank, mp.mined
+    landmarks, covs, depths, boxes = mp.landmarks, mp.covariances, mp.depths, mp.boxes
+    ref_size, ref_scale = mp.ref_size, mp.ref_scale
+    keep = np.arange(len(kept_bank))
 
     rel_err, truth_spread = [], []
     if len(keep):
@@ -340,16 +386,27 @@ def _build_place(place, views, negatives, config):
               "training_runs": [v.run.name for v in views], "detections_at_reference": [[float(v) if np.isfinite(v) else None for v in b] for b in boxes],
               "mined": int(n), "kept": int(len(keep)), "georef": georef_obs},
     )
-    stats = {"place": place.index, "seconds": time.perf_counter() - t0, "mining": mstats.as_dict(),
-             "runs": len(views), "images": len(mined_from), **image_counts,
+    stats = {"place": place.index, "seconds": time.perf_counter() - t0, "mining": mp.mining.as_dict(),
+             "runs": len(views), "images": mp.n_images, **mp.image_counts,
              # why the candidate shapes that did not become signatures were dropped: mining (too few
              # images to form partitions, texture, no convergence), then landmark refinement
-             "rejected": {"no_data": int(mstats.rejected_no_data),
-                          "textureless": int(mstats.rejected_textureless),
-                          "not_converged": int(mstats.rejected_not_converged), **counts},
+             "rejected": mp.rejected,
              "depth_rel_errors": rel_err, "depth_truth_spread": truth_spread, "signatures": int(len(keep)),
              "georef_runs_ok": int(sum(bool(o["ok"]) for o in georef_obs))}
     return data, stats
+
+
+def place_views(place, train: list[SurveyRun], reference: SurveyRun, cfg: dict) -> list:
+    """A place's training views (:func:`mapping.places.training_views`), the reference run's first."""
+    views = places_mod.training_views(place, train, cfg["places"])
+    return [v for v in views if v.run.name == reference.name] + [v for v in views if v.run.name != reference.name]
+
+
+def place_negatives(place, ref_frames: dict, reference: SurveyRun, cfg: dict) -> list[np.ndarray]:
+    """Extra negatives of a place: the reference images of the places ``cfg["negative_places"]`` away
+    (``ref_frames``: place index -> reference frame)."""
+    return [reference.image(ref_frames[place.index + off], gray=True)
+            for off in cfg["negative_places"] if place.index + off in ref_frames]
 
 
 def _place_task(place, views, negatives, config):
@@ -446,14 +503,7 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
 
     def tasks():
         for p in todo:
-            views = places_mod.training_views(p, train, cfg["places"])
-            views = [v for v in views if v.run.name == reference.name] + [v for v in views if v.run.name != reference.name]
-            negs = []
-            for off in cfg["negative_places"]:
-                q = p.index + off
-                if q in ref_frames:
-                    negs.append(reference.image(ref_frames[q], gray=True))
-            yield p, views, negs
+            yield p, place_views(p, train, reference, cfg), place_negatives(p, ref_frames, reference, cfg)
 
     stats = {}
     t0 = time.perf_counter()

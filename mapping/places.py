@@ -20,7 +20,8 @@ from surveys.settings import merge_settings
 from surveys.geometry import interpolate_poses, invert, yaw_of
 from surveys.run import SurveyRun
 
-__all__ = ["Place", "TrainingView", "define_places", "training_views", "neighbour_frames", "default_config",
+__all__ = ["Place", "TrainingView", "define_places", "training_views", "neighbour_frames", "odometry_view",
+           "default_config",
            "arc_length"]
 
 default_config = {
@@ -115,13 +116,7 @@ def training_views(place: Place, runs: list[SurveyRun], config: dict | None = No
         i = int(np.argmin(cost))
         if dist[i] > cfg["max_position_error_m"]:
             continue
-        s = arc_length(poses[:, :3, 3])
-        win = np.nonzero(np.abs(s - s[i]) <= cfg["window_m"])[0][:: cfg["window_step"]]
-        if i not in win:
-            win = np.sort(np.append(win, i))
-        odo = interpolate_poses(run.odometry_times, run.odometry_poses, run.frame_times[win])
-        T_ref = interpolate_poses(run.odometry_times, run.odometry_poses, run.frame_times[i])
-        views.append(TrainingView(run, i, win, invert(T_ref) @ odo, float(dist[i])))
+        views.append(_view(run, i, arc_length(poses[:, :3, 3]), cfg, float(dist[i])))
     return views
 
 
@@ -156,3 +151,23 @@ def neighbour_frames(view: TrainingView, n: int, step_m: float, half_span_m: flo
                 frames.append(int(view.window[r]))
         k += 1
     return np.asarray(frames, dtype=int)
+
+
+def _view(run: SurveyRun, i: int, s: np.ndarray, cfg: dict, position_error_m: float) -> TrainingView:
+    """Frame ``i``'s view: the frames within ±``window_m`` of it by arc length ``s`` (one per frame) and
+    their poses relative to frame ``i`` from the run's odometry."""
+    win = np.nonzero(np.abs(s - s[i]) <= cfg["window_m"])[0][:: cfg["window_step"]]
+    if i not in win:
+        win = np.sort(np.append(win, i))
+    odo = interpolate_poses(run.odometry_times, run.odometry_poses, run.frame_times[win])
+    T_ref = interpolate_poses(run.odometry_times, run.odometry_poses, run.frame_times[i])
+    return TrainingView(run, i, win, invert(T_ref) @ odo, position_error_m)
+
+
+def odometry_view(run: SurveyRun, frame: int, config: dict | None = None,
+                  position_error_m: float = float("nan")) -> TrainingView:
+    """The view of a chosen frame of a run using nothing but its odometry (window by odometry arc length):
+    a live run's frame added to a place by a lifelong update, whose INS must not be used."""
+    cfg = merge_settings(default_config, config, "places")
+    odo = interpolate_poses(run.odometry_times, run.odometry_poses, run.frame_times)
+    return _view(run, int(frame), arc_length(odo[:, :3, 3]), cfg, position_error_m)

@@ -17,7 +17,7 @@ from signatures.bank import Bank
 from mapping.store import MapStore
 from surveys.io import atomic_path
 
-__all__ = ["place_figure", "heatmap", "show_map"]
+__all__ = ["place_figure", "heatmap", "show_map", "describe_map"]
 
 
 def _boxes_and_depths(store: MapStore, data) -> tuple[np.ndarray, np.ndarray]:
@@ -147,3 +147,22 @@ def show_map(map_dir, out, place: int | None = None, progress: bool = True) -> l
     written.append(heatmap(store, indices, out / "heatmap.png"))
     written.append(overview(store, out / "places.png"))
     return written
+
+
+def describe_map(root, place: int | None = None) -> str:
+    """The map's generation, its update history and, per place, signatures and experiences (text)."""
+    store = MapStore.open(root)
+    lines = [f"map {store.root}: {len(store)} places, generation {store.generation}, built from "
+             f"{', '.join(store.params.get('runs', []))}"]
+    for h in store.history:
+        runs = ", ".join(f"{r['run']} ({','.join(r['conditions'])})" for r in h["runs"])
+        lines.append(f"  generation {h['generation']}: {runs} -> places {h['places']}")
+    for i, m in store.places.items():
+        if place is not None and i != place:
+            continue
+        exps = m.extra.get("experiences", [])
+        lines.append(f"place {i:4d}: {m.signatures:3d} signatures, {len(exps)} experience(s)")
+        for e in exps:
+            lines.append(f"    {e['run']} ({','.join(e['conditions'])}) frame {e['frame']}, generation "
+                         f"{e['generation']}, {e['reason']}, +{e['signatures_added']} signatures")
+    return "\n".join(lines)

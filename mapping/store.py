@@ -9,6 +9,10 @@ Layout of ``maps/NAME/``::
                              per-place metadata and, optionally, the point-feature map (``points/``: ORB/SIFT
                              keypoints, descriptors and 3D points of the reference keyframe)
     journal.jsonl            only while a build runs: header + one line per place written (for resume)
+    places/place_0007.g0001.npz   the place as rewritten by lifelong update generation 1 (mapping.update);
+                             the manifest's ``generation``, ``history`` and places' ``extra["experiences"]``
+                             say which runs went into it
+    update.jsonl             only while a lifelong update runs (mapping.update)
 
 Guarantees:
 
@@ -52,7 +56,8 @@ from .codec import (FORMAT_NAME, FORMAT_VERSION, READABLE_VERSIONS, PlaceData, d
                     encode_keyframe, encode_place)
 
 __all__ = ["verify_summary", "FORMAT_NAME", "FORMAT_VERSION", "PlaceData", "PlaceMeta", "MapWriter", "MapStore",
-           "encode_keyframe", "decode_keyframe", "place_file_name", "atomic_write_bytes", "software_version"]
+           "encode_keyframe", "decode_keyframe", "place_file_name", "write_manifest", "atomic_write_bytes",
+           "software_version"]
 
 MANIFEST = "manifest.json"
 JOURNAL = "journal.jsonl"
@@ -69,9 +74,20 @@ def software_version() -> str:
         return "unknown"
 
 
-def place_file_name(index: int) -> str:
-    """Relative path of a place's file, e.g. ``places/place_0007.npz``."""
-    return f"{PLACES_DIR}/place_{int(index):04d}.npz"
+def place_file_name(index: int, generation: int = 0) -> str:
+    """Relative path of a place's file, e.g. ``places/place_0007.npz``; a place rewritten by a lifelong
+    update (:mod:`mapping.update`) gets a new file per map generation, ``places/place_0007.g0002.npz``, so
+    the file an older manifest lists is never overwritten."""
+    if int(generation) == 0:
+        return f"{PLACES_DIR}/place_{int(index):04d}.npz"
+    return f"{PLACES_DIR}/place_{int(index):04d}.g{int(generation):04d}.npz"
+
+
+def write_manifest(root, doc: dict) -> Path:
+    """Write ``manifest.json`` atomically (sorted keys, so the same map gives the same bytes)."""
+    path = Path(root) / MANIFEST
+    atomic_write_bytes(path, (json.dumps(doc, sort_keys=True, indent=1, allow_nan=False) + "\n").encode())
+    return path
 
 
 def _sha256(data: bytes) -> str:
@@ -273,8 +289,7 @@ class MapWriter:
                            "file": r["file"], "sha256": r["sha256"], "bytes": r["bytes"],
                            "signatures": r["signatures"], "extra": json.loads(_canonical(ext))})
         doc = {**self.header, "places": places}
-        path = self.root / MANIFEST
-        atomic_write_bytes(path, (json.dumps(doc, sort_keys=True, indent=1, allow_nan=False) + "\n").encode())
+        path = write_manifest(self.root, doc)
         (self.root / JOURNAL).unlink(missing_ok=True)
         fsync_dir(self.root)
         return path
@@ -355,11 +370,30 @@ class MapStore:
         scenesig version that built it.
     places : dict of int -> PlaceMeta
         In index order.
+    generation : int
+        0 for a built map, +1 per lifelong update (:mod:`mapping.update`).
+    history : list of dict
+        One entry per update: ``generation``, ``runs``, ``places`` updated, ``inputs`` digest.
+
+    Notes
+    -----
+    A lifelong update replaces the manifest while the map may be open.  A place whose file the
+    opened manifest lists no longer matches (or is gone) is loaded through the new manifest instead
+    (:meth:`refresh`), so a reader sees the old or the new place, never a failure.
     """
 
     def __init__(self, root: Path, doc: dict, cache_size: int):
         self.root = root
         self.manifest_path = root / MANIFEST
+        self._cache: OrderedDict[int, PlaceData] = OrderedDict()
+        self._cache_size = max(0, int(cache_size))
+        self._lock = threading.Lock()
+        self._hits = self._misses = 0
+        self._set_doc(doc)
+
+    def _set_doc(self, doc: dict) -> None:
+        self.generation = int(doc.get("generation", 0))
+        self.history = list(doc.get("history", []))
         self.camera = Camera.from_dict(doc["camera"])
         self.T_vehicle_camera = np.asarray(doc["T_vehicle_camera"], dtype=float)
         self.params = doc["params"]
@@ -374,10 +408,6 @@ class MapStore:
         self._idx = np.array(list(self.places), dtype=int)
         self._xyz = np.array([m.position for m in self.places.values()]).reshape(-1, 3)
         self._yaw = np.array([m.yaw for m in self.places.values()])
-        self._cache: OrderedDict[int, PlaceData] = OrderedDict()
-        self._cache_size = max(0, int(cache_size))
-        self._lock = threading.Lock()
-        self._hits = self._misses = 0
 
     @classmethod
     def open(cls, root, cache_size: int = 8, verify: bool = False) -> "MapStore":
@@ -409,6 +439,28 @@ class MapStore:
                                   f"has {digest[:16]}... (corrupt, truncated or modified after the build)")
         return raw
 
+    def place_bytes(self, index: int) -> bytes:
+        """The checksum-verified bytes of place ``index``'s file (e.g. to copy the map)."""
+        return self._read_place_bytes(self.places[int(index)])
+
+    def refresh(self) -> bool:
+        """Re-read the manifest if a lifelong update replaced it; True if the map changed generation.
+
+        Places keep their indices and poses through an update, so only place files, checksums and
+        experiences change; the cache drops the places whose file changed.
+        """
+        doc = _read_json(self.manifest_path)
+        _validate_manifest(doc, self.manifest_path)
+        if int(doc.get("generation", 0)) == self.generation:
+            return False
+        old = dict(self.places)
+        with self._lock:
+            self._set_doc(doc)
+            for i in list(self._cache):
+                if i not in self.places or old.get(i) is None or old[i].sha256 != self.places[i].sha256:
+                    del self._cache[i]
+        return True
+
     def verify(self) -> None:
         """Check every place file against its manifest checksum; DataError naming the first bad file."""
         for meta in self.places.values():
@@ -430,7 +482,15 @@ class MapStore:
                 return self._cache[index]
             self._misses += 1
         meta = self.places[index]
-        data = decode_place(self._read_place_bytes(meta), self.root / meta.file, index)
+        try:
+            raw = self._read_place_bytes(meta)
+        except DataError:
+            # replaced by a lifelong update since the manifest was read: load the new generation's file
+            if not self.refresh() or index not in self.places:
+                raise
+            meta = self.places[index]
+            raw = self._read_place_bytes(meta)
+        data = decode_place(raw, self.root / meta.file, index)
         for a in (data.landmarks, data.covariances, data.classifier_ids, *data.bank_arrays.values(),
                   *data.points.values()):
             a.flags.writeable = False  # cached and shared: a caller's in-place edit must not leak

@@ -21,6 +21,7 @@ COMMANDS = (
     "simulate",
     "build_map",
     "map_show",
+    "map_update",
     "localise",
     "report",
     "experiment",

@@ -37,7 +37,7 @@ from pathlib import Path
 
 from surveys.settings import merge_settings
 
-__all__ = ["default_config", "run_demo"]
+__all__ = ["default_config", "run_demo", "build_demo_report"]
 
 default_config = {
     "preset": "demo",
@@ -107,6 +107,21 @@ def print_table(rows: list[dict], file=sys.stdout) -> None:
                   f"{_fmt(m['blind_fraction_over_20m'], 3):>9s}", file=file)
 
 
+def build_demo_report(out, config: dict | None = None, live_names: list[str] | None = None) -> Path:
+    """The demo's report (``DIR/report``) from its localisations, matching experiment and, when the
+    lifelong stage has run, its results (``DIR/lifelong/CONDITION/result``)."""
+    from .report import build_report
+
+    out = Path(out)
+    cfg = merge_settings(default_config, config, "demo")
+    if live_names is None:
+        names = [r["name"] for r in json.loads((out / "world" / "simulate_summary.json").read_text())["runs"]]
+        live_names = names[len(cfg["training"]):]
+    extra = sorted(f.parent for f in (out / "lifelong").glob("*/result/lifelong.json"))
+    return build_report([out / "localise", out / "matching", *extra], out / "report",
+                        runs=[out / "world" / n for n in live_names])
+
+
 def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     """Run the whole demo into ``out``; returns ``summary.json``'s content."""
     from joblib import Parallel, delayed
@@ -118,7 +133,6 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
 
     from .experiments import matching_experiment
     from .plots import write_matching
-    from .report import build_report
 
     cfg = merge_settings(default_config, config, "demo")
     every = round(float(cfg["camera_hz"]) / float(cfg["detector_hz"]))
@@ -188,8 +202,7 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
 
     _log("5/5 report")
     t = time.perf_counter()
-    index = build_report([out / "localise", out / "matching"], out / "report",
-                         runs=[out / "world" / n for n in live_names])
+    index = build_demo_report(out, cfg, live_names)
     stages["report"] = time.perf_counter() - t
 
     rows = [{"run": n, "conditions": list(runs[n].conditions),

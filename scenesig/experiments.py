@@ -25,7 +25,6 @@ dead-reckoning plot (Fig. 25): for each distance d, the probability of travellin
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,10 +37,9 @@ from surveys.settings import merge_settings
 from surveys.errors import DataError
 from surveys.geometry import interpolate_poses, yaw_of
 from surveys.run import SurveyRun, read_run
-from surveys.tum import read_tum
 
 from localiser.evaluation import dead_reckoning_curve, lateral_heading_errors, travelled
-from localiser.outputs import read_frames_csv, reference_path
+from localiser.outputs import read_output_files, reference_path
 from localiser.pointmethod import default_config as point_default
 from localiser.pointmethod import match_to_map
 
@@ -305,28 +303,7 @@ class LocaliseOutput:
 def read_localise_output(folder) -> LocaliseOutput:
     """Read ``metrics.json``, ``frames.csv`` and ``trajectory.tum`` of a localise output folder."""
     folder = Path(folder)
-    mpath = folder / "metrics.json"
-    if not mpath.is_file():
-        raise DataError(mpath, "missing: not a `scenesig localise` output folder")
-    try:
-        metrics = json.loads(mpath.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise DataError(mpath, f"invalid JSON: {exc.msg}", line=exc.lineno) from None
-    if not isinstance(metrics, dict) or "method" not in metrics or "run" not in metrics:
-        raise DataError(mpath, "expected an object with at least 'method' and 'run'")
-    fpath = folder / "frames.csv"
-    if not fpath.is_file():
-        raise DataError(fpath, "missing")
-    frames = read_frames_csv(fpath)
-    tpath = folder / "trajectory.tum"
-    if not tpath.is_file():
-        raise DataError(tpath, "missing")
-    times, poses = read_tum(tpath)
-    n = len(frames["time"])
-    if len(times) != n:
-        raise DataError(tpath, f"{len(times)} poses but frames.csv has {n} frames")
-    if n and np.max(np.abs(times - frames["time"])) > 1e-3:
-        raise DataError(tpath, "times differ from frames.csv's")
+    metrics, frames, times, poses = read_output_files(folder)
     return LocaliseOutput(folder, metrics, frames, times, poses)
 
 

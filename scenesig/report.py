@@ -249,6 +249,7 @@ def build_report(results, out, runs=None, title: str = "scenesig localisation re
                    "frame and the map keyframe), one line per test run." if "counts" in png.name else
                    "Where matches fall: +1 per pixel inside each matched shape, averaged over the test runs.")
             parts.append(_figure(_rel(mfig / png.name, out), cap, png.stem))
+    parts += _lifelong_section(results, fig_dir, out)
     parts.append(f"<p class='meta'>Report built in {time.perf_counter() - t0:.1f} s by scenesig.</p></body></html>")
     index = out / "index.html"
     atomic_write_text(out / "report_summary.json",
@@ -257,6 +258,43 @@ def build_report(results, out, runs=None, title: str = "scenesig localisation re
     for stale in before - produced:      # figures of results no longer on the page
         stale.unlink(missing_ok=True)
     return index
+
+
+def _lifelong_section(results, fig_dir: Path, out: Path) -> list[str]:
+    """The lifelong-map stage (``lifelong.json`` + ``lifelong.png`` at or below ``results``,
+    :mod:`scenesig.lifelong`): its table and figure."""
+    found = []
+    for p in results:
+        p = Path(p)
+        found += [p / "lifelong.json"] if (p / "lifelong.json").is_file() else sorted(p.rglob("lifelong.json")) if p.is_dir() else []
+    parts = []
+    for path in dict.fromkeys(found):
+        try:
+            res = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise DataError(path, f"unreadable: {exc}") from None
+        u = res.get("update", {})
+        parts += [f"<h2>Lifelong map ({html.escape(res['condition'])})</h2>",
+                  f"<p class='note'>Condition never trained: <b>{html.escape(res['condition'])}</b>. Run A "
+                  f"({html.escape(res['run_a'])}) was localised and its weak places added to a copy of the map "
+                  f"(places {html.escape(str(u.get('updated')))}, generation {u.get('generation')}, "
+                  f"{u.get('signatures_added', 0)} signatures, {u.get('bytes_added', 0)} bytes added); run B "
+                  f"({html.escape(res['run_b'])}) and another live run localised before and after.</p>"]
+        head = ("<tr><th class='l'>run</th><th class='l'>map</th><th>inliers / detection</th><th>detections / frame"
+                "</th><th>lateral median vs map (m)</th><th>localised</th><th>failures</th></tr>")
+        body = "".join(
+            f"<tr><td class='l'>{html.escape(r['label'])} {html.escape(r['run'])}</td><td class='l'>{html.escape(r['map'])}</td>"
+            f"<td>{_fmt(r['inliers_per_detection_mean'])}</td><td>{_fmt(r['detections_per_frame_mean'])}</td>"
+            f"<td>{_fmt(r['lateral_median_map_m'])}</td><td>{_fmt(r['localised_fraction'], pct=True)}</td>"
+            f"<td>{_fmt(r['failures'])}</td></tr>" for r in res["rows"])
+        parts.append(f"<table class='lifelong'>{head}{body}</table>")
+        png = path.parent / "lifelong.png"
+        if png.is_file():
+            shutil.copy2(png, fig_dir / "lifelong.png")
+            parts.append(_figure(_rel(fig_dir / "lifelong.png", out),
+                                 "Inliers per detection, lateral median relative to the map and failures, before "
+                                 "(grey) and after (green) the update.", "lifelong"))
+    return parts
 
 
 def _json_default(o):

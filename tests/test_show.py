@@ -1,5 +1,6 @@
 """``scenesig map show MAP [--place P] --out DIR`` (mapping/show.py) on the tiny world's map."""
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -31,8 +32,11 @@ def test_map_show_writes_every_figure(map_root, tmp_path, capsys):
     assert names == ["heatmap.png", "place_0000.png", "place_0001.png", "place_0002.png", "places.png"]
     for p in out.iterdir():
         _png(p)
-    printed = capsys.readouterr().out.split()
-    assert len(printed) == 5
+    printed = capsys.readouterr().out.splitlines()
+    # the listing (generation, places) first, then one line per figure written
+    assert printed[0].startswith(f"map {map_root}") and "generation 0" in printed[0]
+    assert sum(line.startswith("place ") for line in printed) == 3
+    assert sorted(Path(line).name for line in printed[-5:]) == names
 
 
 def test_map_show_one_place(map_root, tmp_path, capsys):

@@ -13,6 +13,11 @@ def register(groups):
                    help="simulated world (default demo, ≈300 m; tiny is a one-minute smoke run)")
     p.add_argument("--camera-hz", type=float, default=None,
                    help="camera rate of the simulated runs (default 10 Hz; the detector runs at 5 Hz either way)")
+    p.add_argument("--lifelong", action="store_true",
+                   help="then the lifelong-map stage: an unseen condition's run A updates the map; run B of it "
+                        "and another live run are localised before and after (scenesig/lifelong.py)")
+    p.add_argument("--lifelong-condition", choices=["autumn", "morning"], default="autumn",
+                   help="the never-trained condition of the lifelong stage (default autumn)")
     p.set_defaults(_run=run)
 
 
@@ -23,4 +28,11 @@ def run(args) -> int:
     if args.camera_hz:
         config["camera_hz"] = float(args.camera_hz)
     run_demo(args.out, jobs=int(args.jobs), config=config)
+    if getattr(args, "lifelong", False):
+        from scenesig.demo import build_demo_report
+        from scenesig.lifelong import run_lifelong
+
+        run_lifelong(args.out, jobs=int(args.jobs), demo_config=config,
+                     config={"condition": getattr(args, "lifelong_condition", None) or "autumn"})
+        build_demo_report(args.out, config)
     return 0

@@ -5,11 +5,12 @@ import json
 
 
 def register(groups):
-    help = "Figures of a map: keyframes with signatures, a heat map."
+    help = ("List a map's generation and per-place experiences; with --out, figures of it: keyframes with "
+            "signatures, a heat map.")
     p = groups["map"].add_parser("show", help=help, description=help)
     p.add_argument("map", help="map folder")
     p.add_argument("--place", type=int, default=None, help="only this place")
-    p.add_argument("--out", required=True, help="figure folder")
+    p.add_argument("--out", default=None, help="figure folder")
     p.set_defaults(_run=run)
     help = "Verify a map's checksums and summarise it as JSON."
     v = groups["map"].add_parser("verify", help=help, description=help)
@@ -23,10 +24,12 @@ def register(groups):
 
 
 def run(args) -> int:
-    from mapping.show import show_map
+    from mapping.show import describe_map, show_map
 
-    for p in show_map(args.map, args.out, args.place):
-        print(p)
+    print(describe_map(args.map, args.place))
+    if args.out:
+        for p in show_map(args.map, args.out, args.place):
+            print(p)
     return 0
 
 

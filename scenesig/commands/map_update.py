@@ -1,0 +1,35 @@
+"""``scenesig map update MAP LOCALISATION_DIR... [--out NEWMAP]``: a lifelong map update."""
+from __future__ import annotations
+
+import json
+
+
+def register(groups):
+    help = "Add live runs' appearance to the places where their localisation was weak (lifelong map)."
+    p = groups["map"].add_parser("update", help=help, description=help + " See mapping/update.py for the rule.")
+    p.add_argument("map", help="map folder (updated in place, atomically, unless --out)")
+    p.add_argument("localisations", nargs="+", metavar="LOCALISATION_DIR",
+                   help="'scenesig localise' output folders (their runs must still exist)")
+    p.add_argument("--out", default=None, metavar="NEWMAP", help="write the updated map here instead")
+    p.add_argument("--runs-dir", action="append", default=[], metavar="DIR",
+                   help="folder holding the map's training runs (default: beside the live runs; repeatable)")
+    p.add_argument("--config", default=None, help="overrides of mapping.update.default_config (JSON)")
+    p.set_defaults(_run=run)
+
+
+def run(args) -> int:
+    from localiser.outputs import read_localisation
+    from mapping.build import load_config
+    from mapping.update import update_map
+
+    locs = [read_localisation(folder, args.runs_dir) for folder in args.localisations]
+    summary = update_map(args.map, locs, out=args.out, runs_dirs=args.runs_dir, config=load_config(args.config))
+    keys = ("map", "generation", "updated", "signatures_added", "bytes_added", "seconds_per_updated_place",
+            "message")
+    print(json.dumps({k: summary[k] for k in keys if k in summary}, indent=1))
+    for name, verdict in summary["verdicts"].items():
+        for i, r in verdict.items():
+            if r["weak"]:
+                what = f"added frame {r['frame']}" if r["frame"] is not None else f"skipped: {r['skip']}"
+                print(f"{name}: place {i} weak ({r['reason']}): {what}")
+    return 0

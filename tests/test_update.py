@@ -1,0 +1,190 @@
+"""Lifelong map updates (mapping/update.py) on the tiny world: only weak places change, a SIGKILL mid-update
+leaves a valid map and a re-run finishes it to the same bytes, a concurrent reader never fails, and a
+localisation that failed everywhere adds nothing and says why."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from build_world import tiny_map, tiny_runs  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """The tiny map and a localisation of its night run against it."""
+    from localiser.replay import localise
+
+    base = tmp_path_factory.getbasetemp()
+    runs = tiny_runs(base)
+    root = tiny_map(base)
+    night = next(r for r in runs if r.conditions[0] == "night")
+    loc = base / "loc_night"
+    if not (loc / "metrics.json").exists():
+        localise(root, night.root, loc, progress=False, figure=False)
+    return root, loc
+
+
+def _contents(root: Path) -> dict:
+    """The map as a reader sees it: the manifest and the place files it lists (bytes)."""
+    doc = json.loads((root / "manifest.json").read_text())
+    return {"manifest.json": (root / "manifest.json").read_bytes(),
+            **{p["file"]: (root / p["file"]).read_bytes() for p in doc["places"]}}
+
+
+@pytest.fixture(scope="module")
+def reference_update(world, tmp_path_factory):
+    """An uninterrupted update of the tiny map with the night localisation, into a new folder."""
+    from localiser.outputs import read_localisation
+    from mapping.update import update_map
+
+    root, loc = world
+    out = tmp_path_factory.mktemp("updated") / "map"
+    summary = update_map(root, [read_localisation(loc)], out=out, progress=False)
+    return out, summary
+
+
+def test_metrics_gain_detection_rates(world):
+    from localiser.outputs import read_frames_csv
+
+    _, loc = world
+    m = json.loads((loc / "metrics.json").read_text())
+    fr = read_frames_csv(loc / "frames.csv")
+    assert m["inliers_per_detection_mean"] == pytest.approx(fr["inliers"].sum() / fr["detections"].sum())
+    assert m["detections_per_frame_mean"] == pytest.approx(fr["detections"].sum() / m["detector_frames"])
+    assert Path(m["run_path"]).is_dir()
+
+
+def test_update_changes_only_the_weak_places(world, reference_update):
+    from mapping.show import describe_map
+    from mapping.store import MapStore
+
+    root, loc = world
+    out, summary = reference_update
+    verdict = summary["verdicts"][str(loc)]
+    weak = sorted(i for i, r in verdict.items() if r["weak"] and r["frame"] is not None)
+    assert weak and summary["updated"] == weak
+    assert any(not r["weak"] for r in verdict.values()), "the rule must keep a well-localised place"
+    old = MapStore.open(root)
+    new = MapStore.open(out, verify=True)
+    assert (old.generation, new.generation) == (0, 1)
+    for i, m in new.places.items():
+        before = (root / old.places[i].file).read_bytes()
+        after = (out / m.file).read_bytes()
+        if i in weak:
+            assert m.file.endswith(".g0001.npz")
+            exp = m.extra["experiences"]
+            assert [(e["run"], e["generation"], e["frame"]) for e in exp] == \
+                [(json.loads((loc / "metrics.json").read_text())["run"], 1, verdict[i]["frame"])]
+            d_old, d_new = old.load_place(i), new.load_place(i)
+            k = len(d_old.landmarks)
+            # kept classifiers keep their landmarks (refined depths) and ids; new ones are appended
+            np.testing.assert_allclose(d_new.landmarks[:k], d_old.landmarks, rtol=1e-6, atol=1e-6)
+            assert d_new.classifier_ids[:k].tolist() == d_old.classifier_ids.tolist()
+            assert len(d_new.landmarks) == k + exp[0]["signatures_added"]
+        else:
+            assert m.file == old.places[i].file and after == before, f"place {i} is not weak but changed"
+    text = describe_map(out)
+    assert "generation 1" in text and "experience" in text
+    # the original map is untouched by an update with --out
+    assert MapStore.open(root, verify=True).generation == 0
+
+
+def _update_process(root: Path, loc: Path) -> subprocess.Popen:
+    code = ("import sys; from localiser.outputs import read_localisation; from mapping.update import update_map; "
+            "update_map(sys.argv[1], [read_localisation(sys.argv[2])], progress=False)")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, "-c", code, str(root), str(loc)], env=env, cwd=ROOT)
+
+
+@pytest.fixture(scope="module")
+def killed_and_resumed(world, reference_update, tmp_path_factory):
+    """An in-place update SIGKILLed after its first place file, then re-run, while a reader loads places."""
+    from mapping.store import MapStore
+
+    root, loc = world
+    work = tmp_path_factory.mktemp("inplace") / "map"
+    shutil.copytree(root, work)
+    record = {"loads": 0, "errors": [], "generations": set()}
+    stop = threading.Event()
+    opened = MapStore.open(work, cache_size=0)    # a long-lived reader: opened before the update
+
+    def reader():
+        while not stop.is_set():
+            try:
+                for store in (opened, MapStore.open(work, cache_size=0)):
+                    for i in store.places:
+                        store.load_place(i)
+                        record["loads"] += 1
+                    record["generations"].add(store.generation)
+            except Exception as exc:  # noqa: BLE001 -- any failure to load is what the test looks for
+                record["errors"].append(repr(exc))
+
+    t = threading.Thread(target=reader, daemon=True)
+    t.start()
+    proc = _update_process(work, loc)
+    journal = work / "update.jsonl"
+    deadline = time.time() + 600
+    while proc.poll() is None and time.time() < deadline:
+        if journal.exists() and len(journal.read_text().splitlines()) >= 2:  # header + one place
+            proc.send_signal(signal.SIGKILL)
+            break
+        time.sleep(0.05)
+    proc.wait()
+    record["killed"] = proc.returncode == -signal.SIGKILL
+    valid = MapStore.open(work, verify=True)     # the map is valid after the kill
+    record["generation_after_kill"] = valid.generation
+    resumed = _update_process(work, loc)
+    resumed.wait()
+    stop.set()
+    t.join()
+    record["resume_rc"] = resumed.returncode
+    return work, record
+
+
+def test_kill_and_resume_gives_the_same_bytes(reference_update, killed_and_resumed):
+    out, _ = reference_update
+    work, record = killed_and_resumed
+    assert record["killed"], "the update finished before it could be killed"
+    assert record["generation_after_kill"] == 0
+    assert record["resume_rc"] == 0
+    assert _contents(work) == _contents(out)
+    assert not (work / "update.jsonl").exists()
+
+
+def test_concurrent_reader_never_fails(killed_and_resumed):
+    _, record = killed_and_resumed
+    assert record["errors"] == []
+    assert record["loads"] > 0 and 1 in record["generations"]
+
+
+def test_update_from_a_failed_localisation_adds_nothing(world, tmp_path, capsys):
+    from scenesig.cli import main
+
+    root, loc = world
+    failed = tmp_path / "failed"
+    shutil.copytree(loc, failed)
+    lines = (failed / "frames.csv").read_text().splitlines()
+    head = lines[0].split(",")
+    rows = [r.split(",") for r in lines[1:]]
+    for r in rows:  # the localiser accepted nothing anywhere
+        r[head.index("localised")] = "0"
+        r[head.index("inliers")] = "0"
+    (failed / "frames.csv").write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
+    before = _contents(root)
+    assert main(["map", "update", str(root), str(failed)]) == 0
+    out = capsys.readouterr().out
+    assert "nothing added" in out and "never localised" in out
+    assert _contents(root) == before
