@@ -188,3 +188,28 @@ def test_update_from_a_failed_localisation_adds_nothing(world, tmp_path, capsys)
     out = capsys.readouterr().out
     assert "nothing added" in out and "never localised" in out
     assert _contents(root) == before
+
+
+@pytest.mark.parametrize("after_bytes", [0, 30000])
+def test_update_on_a_full_disk_keeps_the_old_map_and_reruns_to_the_same_bytes(world, reference_update, tmp_path,
+                                                                             monkeypatch, capsys, after_bytes):
+    """ENOSPC at once or part-way through a place file: exit 2 naming the file, the map a reader sees is the
+    old generation, and the update re-run once space is freed ends with the uninterrupted update's bytes."""
+    from faultinject import disk_full
+    from scenesig.cli import main
+
+    root, loc = world
+    out, _ = reference_update
+    work = tmp_path / "map"
+    shutil.copytree(root, work)
+    before = _contents(work)
+    with monkeypatch.context() as mp:
+        state = disk_full(mp, work, after_bytes=after_bytes)
+        assert main(["map", "update", str(work), str(loc)]) == 2
+    assert state["failures"] >= 1
+    err = capsys.readouterr().err
+    assert f"scenesig: error: {work}/" in err and "could not write" in err and "Traceback" not in err
+    assert _contents(work) == before                          # readers still see the old map, whole
+    assert not [p for p in work.rglob("*") if ".tmp" in p.name]
+    assert main(["map", "update", str(work), str(loc)]) == 0
+    assert _contents(work) == _contents(out)
