@@ -81,6 +81,9 @@ def build_parser() -> argparse.ArgumentParser:
     mode.add_argument("--realtime", action="store_true", help="threads and queues, stale frames dropped")
     lo.add_argument("--speed", type=float, default=1.0,
                     help="with --realtime: replay speed as a multiple of the recorded rate (default 1)")
+    lo.add_argument("--oracle", choices=["ins", "none"], default="ins",
+                    help="ins (default, the paper's protocol): start and reset from the run's INS/GPS; none: no "
+                         "INS/GPS -- global localisation from the map at start-up, relocalisation when lost")
 
     r = cmd("report", "localiser.report", "HTML report of localisation results.")
     r.add_argument("results", nargs="+", help="localise output folders or a demo folder")

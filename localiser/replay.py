@@ -27,11 +27,14 @@ features including the extraction, wherever it ran), ``ms_per_solve`` the solver
 ``realtime_factor`` the data duration over the wall time of the replay loop alone (opening the map
 and the run, the evaluation and writing the outputs are not counted).
 
-The run's INS/GPS poses (``groundtruth.tum``) are the *oracle*: they initialise the localiser and
-reset it after a failure, and are never used to localise.  The exact truth (``truth.tum``) is read
-only by the evaluation.
+The run's INS/GPS poses (``groundtruth.tum``) are the *oracle* (``oracle="ins"``, the paper's
+protocol and the default): they initialise the localiser and reset it after a failure, and are never
+used to localise.  With ``oracle="none"`` the localiser opens neither ``groundtruth.tum`` nor
+``gps.csv``: it finds itself on the map by global localisation and relocalises when lost
+(:mod:`localiser.relocalise`).  The exact truth (``truth.tum``) is read only by the evaluation,
+after the replay.
 
-``python -m localiser.replay MAP RUN --out DIR [--method signatures] [--every 4 | --realtime [--speed X]]``
+``python -m localiser.replay MAP RUN --out DIR [--method signatures] [--oracle ins|none] [--every 4 | --realtime [--speed X]]``
 is the same as ``scenesig localise``.
 """
 from __future__ import annotations
@@ -54,7 +57,7 @@ from surveys.tum import write_tum
 from .evaluation import ReferencePath, evaluate
 from .pipeline import Localiser, Measurement, WeakLocaliser, make_method
 
-__all__ = ["default_config", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
+__all__ = ["default_config", "ORACLES", "add_oracle_argument", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
            "localise", "run_from_args", "FRAMES_COLUMNS", "TIMING_KEYS"]
 
 default_config = {
@@ -63,15 +66,22 @@ default_config = {
                                  # detector frame on a worker thread while the current one is processed
     "speed": 1.0,                # real-time mode: playback speed (2 = twice as fast as recorded)
     "max_path_distance_m": None,  # frames further than this from the map are left out of the errors
+    "oracle": "ins",             # "ins": start and reset from the run's INS/GPS; "none": no INS/GPS
     "localiser": {},             # overrides of localiser.pipeline.default_config
+    "relocalise": {},            # overrides of localiser.relocalise.default_config (oracle "none")
     "method": {},                # method configuration (e.g. {"detector": {...}, "solver": {...}})
 }
 
 #: Columns of ``frames.csv``.
 FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
                   "distance_since_localisation")
+#: Where the localiser's first pose and its recovery after a failure come from.
+ORACLES = ("ins", "none")
 #: ``metrics.json`` entries that measure the machine rather than the result (they differ between runs).
-TIMING_KEYS = ("ms_per_detection", "ms_per_solve", "ms_per_odometry_update", "realtime_factor", "wall_seconds")
+TIMING_KEYS = ("ms_per_detection", "ms_per_solve", "ms_per_odometry_update", "ms_per_retrieval", "realtime_factor",
+               "wall_seconds")
+#: Accepted localisations further than this from the truth are ``false_fixes`` (metres).
+FALSE_FIX_M = 5.0
 
 
 @dataclass
@@ -95,6 +105,15 @@ class ReplayResult:
     failures: int
     reset_times: list = field(default_factory=list)   # times of the oracle resets (odometry times)
     timings: dict = field(default_factory=dict)
+    oracle: str = "ins"
+    oracle_reads: int = 0
+    valid: np.ndarray | None = None   # (N,) bool: the localiser had a world pose at this frame
+    first_fix_time: float | None = None      # oracle "none": the first pose found from the map
+    relocalisations: list = field(default_factory=list)  # oracle "none": (t_lost, t_found) pairs
+
+    def __post_init__(self):
+        if self.valid is None:
+            self.valid = np.ones(len(self.times), dtype=bool)
 
 
 def _oracle(run: SurveyRun):
@@ -165,15 +184,22 @@ class _Recorder:
         self.localised = np.zeros(n, dtype=bool)
         self.detector_ran = np.zeros(n, dtype=bool)
         self.distance = np.zeros(n)
+        self.valid = np.zeros(n, dtype=bool)
         self.reasons: list = [None] * n
         self.ms_detect: list[float] = []
         self.ms_solve: list[float] = []
         self.lock = threading.Lock()
 
     def pose(self, i: int, loc: Localiser, t: float) -> None:
+        if not loc.has_estimate:          # no oracle and no fix yet: not localised, no world pose
+            with self.lock:
+                self.poses[i] = np.nan
+                self.distance[i] = loc.distance_since_localisation
+            return
         T = loc.estimate(t)
         with self.lock:
             self.poses[i] = T
+            self.valid[i] = True
             self.distance[i] = loc.distance_since_localisation
             if self.places[i] < 0:
                 self.places[i] = loc.nearest_place(T)
@@ -233,15 +259,25 @@ class _FramePrefetcher:
         self._pool.shutdown(wait=True)
 
 
+def _search(reloc, run: SurveyRun, i: int, t: float, img, rec: _Recorder, ms_prepare: float, method) -> None:
+    """Global search for frame i (not localised, no oracle): retrieval, verification, sequence check."""
+    raw = img if isinstance(img, np.ndarray) else run.image(i, gray=True)
+    r = reloc.search(img, t, raw)
+    rec.measurement(i, r.place, r.measurement, r.accepted, ms_prepare + r.ms_retrieval + r.ms_detect, r.ms_solve)
+
+
 def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t: float, rec: _Recorder,
-                frames: _FramePrefetcher | None = None) -> None:
+                frames: _FramePrefetcher | None = None, reloc=None) -> None:
     """Detector + solver for frame i at time t (deterministic mode: inline)."""
-    prior = loc.prior(t)
-    method.prefetch(prior.next_place)
     if frames is not None:
         img, ms_prepare = frames.get(i)
     else:
         img, ms_prepare = run.image(i, gray=not method.color), 0.0
+    if reloc is not None and loc.lost:
+        _search(reloc, run, i, t, img, rec, ms_prepare, method)
+        return
+    prior = loc.prior(t)
+    method.prefetch(prior.next_place)
     t0 = time.perf_counter()
     obs = method.detect(img, prior.place, prior)      # an image or its prepare() result
     t1 = time.perf_counter()
@@ -251,7 +287,7 @@ def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t
     rec.measurement(i, prior.place, m, accepted, ms_prepare + 1e3 * (t1 - t0), 1e3 * (t2 - t1))
 
 
-def _deterministic(method, loc, run, rec, every, progress, prefetch=True):
+def _deterministic(method, loc, run, rec, every, progress, prefetch=True, reloc=None):
     from tqdm import tqdm
 
     ft = rec.times
@@ -267,7 +303,7 @@ def _deterministic(method, loc, run, rec, every, progress, prefetch=True):
     def frame(i):
         t = max(float(ft[i]), t_start)       # frames before the first odometry: at the start pose
         if i % every == 0:
-            _run_method(method, loc, run, i, t, rec, frames)
+            _run_method(method, loc, run, i, t, rec, frames, reloc)
         rec.pose(i, loc, t)
         bar.update(1)
 
@@ -287,7 +323,7 @@ def _deterministic(method, loc, run, rec, every, progress, prefetch=True):
         bar.close()
 
 
-def _realtime(method, loc, run, rec, speed, progress):
+def _realtime(method, loc, run, rec, speed, progress, reloc=None):
     from tqdm import tqdm
 
     ft = rec.times
@@ -302,9 +338,13 @@ def _realtime(method, loc, run, rec, speed, progress):
         try:
             while (i := frames_box.get()) is not None:
                 t = max(float(ft[i]), t_start)
+                img = run.image(i, gray=not method.color)
+                if reloc is not None and loc.lost:
+                    # not localised: the whole search (retrieval, verification, sequence check) here
+                    _search(reloc, run, i, t, img, rec, 0.0, method)
+                    continue
                 prior = loc.prior(t)
                 method.prefetch(prior.next_place)
-                img = run.image(i, gray=not method.color)
                 t0 = time.perf_counter()
                 obs = method.detect(img, prior.place, prior)   # detect() runs prepare() itself
                 solve_box.put((i, t, prior, obs, 1e3 * (time.perf_counter() - t0)))
@@ -368,18 +408,22 @@ def _realtime(method, loc, run, rec, speed, progress):
 
 def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signatures", every: int = 4,
            realtime: bool = False, speed: float = 1.0, config: dict | None = None,
-           progress: bool = False) -> ReplayResult:
+           progress: bool = False, oracle: str | None = None, retrieval=None) -> ReplayResult:
     """Localise one run against a map.
 
     Parameters
     ----------
     store : the map.
-    run : the live run (needs odometry and INS/GPS poses; truth only for the metrics).
+    run : the live run (needs odometry, and INS/GPS poses with ``oracle="ins"``; truth only for the
+        metrics).
     method : a :class:`WeakLocaliser` or a registered method name.
     every : deterministic mode: detector on every ``every``-th frame.
     realtime : threads and mailboxes, paced by the data timestamps (``speed`` times faster).
-    config : overrides of :data:`default_config` (``localiser`` and ``method`` sub-dicts).
+    config : overrides of :data:`default_config` (``localiser``, ``method``, ``relocalise`` sub-dicts).
     progress : show a tqdm bar.
+    oracle : ``"ins"`` or ``"none"`` (default: ``config["oracle"]``, else ``"ins"``).
+    retrieval : the coarse place retrieval for ``oracle="none"`` (default: the map's descriptors,
+        :class:`localiser.relocalise.PlaceRetrieval`).
     """
     cfg = {**default_config, **(config or {})}
     unknown = set(config or {}) - set(default_config)
@@ -390,19 +434,27 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
         raise ValueError(f"every must be >= 1, got {every}")
     if not speed > 0:
         raise ValueError(f"speed must be > 0, got {speed}")
+    oracle = oracle or cfg["oracle"]
+    if oracle not in ORACLES:
+        raise ValueError(f"oracle must be one of {ORACLES}, got {oracle!r}")
     _check_compatible(store, run)
     own = isinstance(method, str)
     if own:
         method = make_method(method, store, run.camera, run.T_vehicle_camera, cfg["method"] or None)
-    loc = Localiser(store, _oracle(run), cfg["localiser"] or None)
+    loc = Localiser(store, _oracle(run) if oracle == "ins" else None, cfg["localiser"] or None)
+    reloc = None
+    if oracle == "none":
+        from .relocalise import Relocaliser
+
+        reloc = Relocaliser(store, method, loc, cfg["relocalise"] or None, retrieval=retrieval)
     rec = _Recorder(run)
     extra = {}
     wall0 = time.perf_counter()
     try:
         if realtime:
-            extra = _realtime(method, loc, run, rec, float(speed), progress)
+            extra = _realtime(method, loc, run, rec, float(speed), progress, reloc)
         else:
-            _deterministic(method, loc, run, rec, every, progress, bool(cfg["prefetch"]))
+            _deterministic(method, loc, run, rec, every, progress, bool(cfg["prefetch"]), reloc)
     finally:
         if own:
             method.close()
@@ -422,9 +474,13 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
         "duration_s": duration,
         **extra,
     }
+    if reloc is not None and reloc.ms_retrieval:
+        timings["ms_per_retrieval"] = float(np.mean(reloc.ms_retrieval))
+        timings["global_searches"] = int(reloc.searches)
     return ReplayResult(run, method.name, "realtime" if realtime else "deterministic", None if realtime else every,
                         rec.times, rec.poses, rec.places, rec.detections, rec.inliers, rec.localised, resets,
-                        rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times), timings)
+                        rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times), timings,
+                        oracle, loc.oracle_reads, rec.valid.copy(), loc.first_fix_time, list(loc.relocalisations))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -483,25 +539,22 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         tt, tp, source = run.groundtruth_times, run.groundtruth_poses, "groundtruth"
     else:
         raise DataError(run.root or Path(run.name), "no truth.tum or groundtruth.tum to evaluate against")
-    ev = evaluate(result.times, result.poses, tt, tp, reference_path(store), result.localised, result.resets,
-                  max_path_distance_m=max_path_distance_m)
+    ev = _evaluate_valid(result, tt, tp, store, max_path_distance_m)
     m = ev.metrics
     tm = result.timings
     map_errors = {}
-    if source == "truth":
+    tmap = map_relative_truth(store, tp) if source == "truth" else None
+    if tmap is not None:
         from .evaluation import summary
 
-        tmap = map_relative_truth(store, tp)
-        if tmap is not None:
-            evm = evaluate(result.times, result.poses, tt, tmap, reference_path(store), result.localised,
-                           result.resets, max_path_distance_m=max_path_distance_m)
-            # the map's own error: its places against their truth
-            ids = sorted(store.places)
-            off = [np.linalg.norm(store.places[i].T_world_place[:2, 3] - np.asarray(store.places[i].extra["T_truth_place"])[:2, 3])
-                   for i in ids]
-            map_errors = {"lateral_error_map_m": evm.metrics["lateral_error_m"],
-                          "heading_error_map_deg": evm.metrics["heading_error_deg"],
-                          "map_georeference_error_m": summary(off)}
+        evm = _evaluate_valid(result, tt, tmap, store, max_path_distance_m)
+        # the map's own error: its places against their truth
+        ids = sorted(store.places)
+        off = [np.linalg.norm(store.places[i].T_world_place[:2, 3] - np.asarray(store.places[i].extra["T_truth_place"])[:2, 3])
+               for i in ids]
+        map_errors = {"lateral_error_map_m": evm.metrics["lateral_error_m"],
+                      "heading_error_map_deg": evm.metrics["heading_error_deg"],
+                      "map_georeference_error_m": summary(off)}
     metrics = {
         "method": result.method,
         "run": run.name,
@@ -512,10 +565,12 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         "failures": int(result.failures),
         "failures_per_km": m["failures_per_km"],
         "blind_fraction_over_20m": m["blind_fraction_over_20m"],
+        **_no_oracle_metrics(result, ev, tt, tp if tmap is None else tmap),
         **map_errors,
         "ms_per_detection": tm.get("ms_per_detection"),
         "ms_per_solve": tm.get("ms_per_solve"),
         "ms_per_odometry_update": tm.get("ms_per_odometry_update"),
+        "ms_per_retrieval": tm.get("ms_per_retrieval"),
         "realtime_factor": tm.get("realtime_factor"),
         "wall_seconds": tm.get("wall_seconds"),
         "mode": result.mode,
@@ -533,6 +588,68 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         if k in tm:
             metrics[k] = tm[k]
     return metrics, ev
+
+
+def _evaluate_valid(result: ReplayResult, truth_times, truth_poses, store: MapStore, max_path_distance_m):
+    """:func:`localiser.evaluation.evaluate` over the frames with a world pose (all of them with an oracle;
+    from the first fix on without one), its per-frame series put back on every frame (NaN elsewhere)."""
+    from surveys.geometry import interpolate_poses
+
+    from .evaluation import EvaluationResult, travelled
+
+    v = np.asarray(result.valid, bool)
+    if v.all():
+        return evaluate(result.times, result.poses, truth_times, truth_poses, reference_path(store), result.localised,
+                        result.resets, max_path_distance_m=max_path_distance_m)
+    n = len(result.times)
+    dist = travelled(interpolate_poses(truth_times, truth_poses, result.times).reshape(-1, 4, 4)[:, :3, 3])
+    lat, hd, blind = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+    if v.sum() >= 2:
+        ev = evaluate(result.times[v], result.poses[v], truth_times, truth_poses, reference_path(store),
+                      result.localised[v], result.resets[v], max_path_distance_m=max_path_distance_m)
+        lat[v], hd[v], blind[v] = ev.lateral_m, ev.heading_deg, ev.blind_m
+        metrics = ev.metrics
+    else:   # never localised: nothing to evaluate but the distance driven
+        from .evaluation import summary
+
+        metrics = {"lateral_error_m": summary([]), "heading_error_deg": summary([]), "localised_fraction": 0.0,
+                   "failures": int(result.failures), "failures_per_km": None, "blind_fraction_over_20m": None,
+                   "distance_m": float(dist[-1]) if n else 0.0, "frames_evaluated": 0}
+    return EvaluationResult(metrics, lat, hd, blind, dist)
+
+
+def _no_oracle_metrics(result: ReplayResult, ev, truth_times, truth_poses) -> dict:
+    """``oracle``, ``oracle_reads``, ``first_fix_m``, ``relocalisations``, ``false_fixes``, ``relocalise_m``.
+
+    Distances are along the truth (``ev.distance_m``, from the first frame); a false fix is an accepted
+    localisation whose estimate is more than :data:`FALSE_FIX_M` from the truth (relative to the map
+    where the map records its places' truth, so the map's own georeferencing error does not count).
+    """
+    from surveys.geometry import interpolate_poses
+
+    from .evaluation import summary
+
+    s = np.asarray(ev.distance_m, float)
+
+    def at(t):
+        return float(np.interp(t, result.times, s)) if len(s) else 0.0
+
+    first = None
+    if result.oracle == "ins":
+        first = 0.0
+    elif result.first_fix_time is not None:
+        first = at(result.first_fix_time) - (float(s[0]) if len(s) else 0.0)
+    loc = np.asarray(result.localised, bool) & np.asarray(result.valid, bool)
+    false = 0
+    if loc.any():
+        truth = interpolate_poses(truth_times, truth_poses, result.times[loc]).reshape(-1, 4, 4)
+        err = np.linalg.norm(result.poses[loc][:, :2, 3] - truth[:, :2, 3], axis=1)
+        false = int((err > FALSE_FIX_M).sum())
+    found = [at(b) - at(a) for a, b in result.relocalisations]
+    rel = summary(found)
+    return {"oracle": result.oracle, "oracle_reads": int(result.oracle_reads), "first_fix_m": first,
+            "relocalisations": len(found), "false_fixes": false,
+            "relocalise_m": {"median": rel["median"], "max": float(max(found)) if found else None}}
 
 
 def _fmt(v: float) -> str:
@@ -570,9 +687,10 @@ def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metri
     ax.plot(result.poses[:, 0, 3], result.poses[:, 1, 3], "-", color="tab:blue", lw=1, label="estimate")
     loc = result.localised
     ax.plot(result.poses[loc, 0, 3], result.poses[loc, 1, 3], ".", ms=3, color="tab:green", label="localised")
+    what = "reset" if result.oracle == "ins" else "lost"
     if result.resets.any():
         ax.plot(result.poses[result.resets, 0, 3], result.poses[result.resets, 1, 3], "x", color="tab:red", ms=8,
-                mew=2, label=f"reset ({int(result.resets.sum())})")
+                mew=2, label=f"{what} ({int(result.resets.sum())})")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
@@ -600,7 +718,10 @@ def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metri
         from surveys.geometry import interpolate_poses
 
         tm = interpolate_poses(run.truth_times, tmap, result.times).reshape(-1, 4, 4)
-        lat_map, _, _ = lateral_heading_errors(result.poses, tm, reference_path(store))
+        lat_map = np.full(len(result.times), np.nan)
+        if result.valid.any():
+            lat_map[result.valid] = lateral_heading_errors(result.poses[result.valid], tm[result.valid],
+                                                           reference_path(store))[0]
         bx.plot(s, lat_map, color="tab:purple", lw=1, label="lateral error relative to the map")
     if run.groundtruth_times is not None and run.truth_times is not None:
         from surveys.geometry import interpolate_poses
@@ -613,7 +734,10 @@ def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metri
     for sr in s[result.resets]:
         bx.axvline(sr, color="tab:red", lw=1)
     bx.axhline(0, color="0.5", lw=0.5)
-    bx.set_xlabel("distance travelled (m)  [green: within 10 m of a localisation; red: reset]")
+    if result.oracle != "ins" and result.first_fix_time is not None:
+        bx.axvline(float(np.interp(result.first_fix_time, result.times, s)), color="tab:green", lw=1, ls=":")
+    bx.set_xlabel(f"distance travelled (m)  [green: within 10 m of a localisation; red: {what}"
+                  + ("; dotted: first fix from the map" if result.oracle != "ins" else "") + "]")
     bx.set_ylabel("lateral error (m)")
     bx.legend(loc="best", fontsize=8)
     fig.tight_layout()
@@ -629,7 +753,7 @@ def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     metrics, ev = compute_metrics(result, store, max_path_distance_m)
-    write_tum(out / "trajectory.tum", result.times, result.poses)
+    write_tum(out / "trajectory.tum", result.times[result.valid], result.poses[result.valid])
     write_frames_csv(out / "frames.csv", result, ev)
     tmp = out / "metrics.json.tmp"
     tmp.write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
@@ -640,22 +764,42 @@ def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_
 
 
 def localise(map_root, run_root, out, method: str = "signatures", every: int = 4, realtime: bool = False,
-             speed: float = 1.0, config: dict | None = None, progress: bool = True, figure: bool = True) -> dict:
-    """Open the map and the run, replay, write the outputs; returns ``metrics.json``'s content."""
+             speed: float = 1.0, config: dict | None = None, progress: bool = True, figure: bool = True,
+             oracle: str | None = None) -> dict:
+    """Open the map and the run, replay, write the outputs; returns ``metrics.json``'s content.
+
+    With ``oracle="none"`` the localiser's run is read without ``groundtruth.tum``, ``gps.csv`` and
+    ``truth.tum``; the truth is read for the evaluation after the replay.
+    """
+    import dataclasses
+
     store = MapStore.open(map_root)
-    run = read_run(run_root)
     cfg = {**default_config, **(config or {})}
+    oracle = oracle or cfg["oracle"]
+    blind = oracle == "none"
+    run = read_run(run_root, skip=("groundtruth", "gps", "truth") if blind else ())
     result = replay(store, run, method, every=every, realtime=realtime, speed=speed, config=config,
-                    progress=progress)
+                    progress=progress, oracle=oracle)
+    if blind:       # the evaluation's truth, read only now
+        truth = read_run(run_root, check_images=False, skip=("groundtruth", "gps"))
+        result.run = dataclasses.replace(run, truth_times=truth.truth_times, truth_poses=truth.truth_poses)
     return write_outputs(result, store, out, cfg["max_path_distance_m"], figure=figure)
+
+
+def add_oracle_argument(parser) -> None:
+    """``--oracle ins|none`` (shared by ``scenesig localise`` and ``python -m localiser.replay``)."""
+    parser.add_argument("--oracle", choices=ORACLES, default="ins",
+                        help="ins (default, the paper's protocol): start and reset from the run's INS/GPS; none: "
+                             "no INS/GPS -- global localisation from the map at start-up, relocalisation when lost")
 
 
 def run_from_args(args) -> int:
     """``scenesig localise MAP RUN [--method M] --out DIR [--every N | --realtime [--speed X]]``."""
     metrics = localise(args.map, args.run, args.out, method=args.method, every=getattr(args, "every", 4) or 4,
-                       realtime=bool(getattr(args, "realtime", False)), speed=float(getattr(args, "speed", 1.0) or 1.0))
-    keys = ("method", "run", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
-            "blind_fraction_over_20m", "realtime_factor")
+                       realtime=bool(getattr(args, "realtime", False)), speed=float(getattr(args, "speed", 1.0) or 1.0),
+                       oracle=getattr(args, "oracle", None) or "ins")
+    keys = ("method", "run", "oracle", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
+            "blind_fraction_over_20m", "first_fix_m", "relocalisations", "false_fixes", "realtime_factor")
     print(json.dumps({k: metrics[k] for k in keys}, indent=1))
     return 0
 
@@ -670,6 +814,7 @@ def main(argv=None) -> int:
     mode.add_argument("--every", type=int, default=4, help="detector on every N-th frame (deterministic)")
     mode.add_argument("--realtime", action="store_true", help="threads and mailboxes, stale frames dropped")
     ap.add_argument("--speed", type=float, default=1.0, help="real-time playback speed factor")
+    add_oracle_argument(ap)
     args = ap.parse_args(argv)
     try:
         return run_from_args(args)
