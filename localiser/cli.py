@@ -40,6 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--camera-hz", type=float, default=None, help="camera rate (default 20 Hz)")
     s.add_argument("--jobs", type=_positive_int, default=1, help="runs rendered in parallel")
     s.add_argument("--overwrite", action="store_true", help="replace runs already in OUT (default: refuse)")
+    s.add_argument("--start-m", dest="start_m", type=float, default=0.0,
+                   help="distance along the route (m) where every run begins (default 0); same world, same seed")
 
     b = sub.add_parser("bench", help="Benchmarks that print JSON.")
     bsub = b.add_subparsers(dest="bench", required=True, metavar="BENCH")
