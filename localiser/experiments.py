@@ -393,12 +393,15 @@ class LocaliseOutput:
     folder: Path
     metrics: dict
     frames: dict                      # column -> (N,) array (frames.csv)
-    times: np.ndarray                 # (N,) trajectory.tum times
-    poses: np.ndarray                 # (N,4,4) estimates
+    times: np.ndarray                 # (N,) frame times
+    poses: np.ndarray                 # (N,4,4) estimates (NaN before a localiser without INS/GPS first
+                                      # found itself: trajectory.tum has no pose there)
 
     @property
     def method(self) -> str:
-        return str(self.metrics.get("method", "?"))
+        """The method's name; ``"... (no GPS)"`` for a run localised with ``--oracle none``."""
+        name = str(self.metrics.get("method", "?"))
+        return f"{name} (no GPS)" if self.metrics.get("oracle") == "none" else name
 
     @property
     def run(self) -> str:
@@ -457,8 +460,14 @@ def read_localise_output(folder) -> LocaliseOutput:
         raise DataError(tpath, "missing")
     times, poses = read_tum(tpath)
     n = len(frames["time"])
-    if len(times) != n:
+    if len(times) != n and metrics.get("oracle") != "none":
         raise DataError(tpath, f"{len(times)} poses but frames.csv has {n} frames")
+    if len(times) != n:
+        # without INS/GPS there is no pose before the first fix: the trajectory is a tail of the frames
+        if len(times) > n or (len(times) and np.max(np.abs(times - frames["time"][n - len(times):])) > 1e-3):
+            raise DataError(tpath, f"its {len(times)} poses are not the last frames of frames.csv's {n}")
+        poses = np.concatenate([np.full((n - len(times), 4, 4), np.nan), poses.reshape(-1, 4, 4)])
+        times = np.asarray(frames["time"], float)
     if n and np.max(np.abs(times - frames["time"])) > 1e-3:
         raise DataError(tpath, "times differ from frames.csv's")
     return LocaliseOutput(folder, metrics, frames, times, poses)
@@ -498,7 +507,7 @@ def frame_distances(output: LocaliseOutput, run: SurveyRun | None = None) -> np.
     p = output.poses[:, :3, 3]
     if len(p) < 2:
         return np.zeros(len(p))
-    step = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    step = np.nan_to_num(np.linalg.norm(np.diff(p, axis=0), axis=1))     # no pose yet: no distance
     med = float(np.median(step))
     step = np.where(step > max(5 * med, 3.0), med, step)
     return np.concatenate([[0.0], np.cumsum(step)])
@@ -650,6 +659,11 @@ def summary_rows(outputs: list) -> list[dict]:
                      "localised_fraction": m.get("localised_fraction"), "failures": m.get("failures"),
                      "failures_per_km": m.get("failures_per_km"),
                      "blind_fraction_over_20m": m.get("blind_fraction_over_20m"), "distance_m": m.get("distance_m"),
+                     # localising without INS/GPS (--oracle none)
+                     "oracle": m.get("oracle", "ins"), "oracle_reads": m.get("oracle_reads"),
+                     "first_fix_m": m.get("first_fix_m"), "relocalisations": m.get("relocalisations"),
+                     "false_fixes": m.get("false_fixes"),
+                     "relocalise_median_m": (m.get("relocalise_m") or {}).get("median"),
                      "folder": str(o.folder)})
     return rows
 
