@@ -34,14 +34,11 @@ used to localise.  With ``oracle="none"`` the localiser opens neither ``groundtr
 (:mod:`localiser.relocalise`).  The exact truth (``truth.tum``) is read only by the evaluation,
 after the replay.
 
-``python -m localiser.replay MAP RUN --out DIR [--method signatures] [--oracle ins|none] [--every 4 | --realtime [--speed X]]``
-is the same as ``scenesig localise``.
+Command line: ``scenesig localise MAP RUN --out DIR [--method signatures] [--oracle ins|none] [--every 4 | --realtime [--speed X]]``.
 """
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -57,8 +54,8 @@ from surveys.tum import write_tum
 from .evaluation import ReferencePath, evaluate
 from .pipeline import Localiser, Measurement, WeakLocaliser, make_method
 
-__all__ = ["default_config", "ORACLES", "add_oracle_argument", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
-           "localise", "run_from_args", "FRAMES_COLUMNS", "TIMING_KEYS"]
+__all__ = ["default_config", "ORACLES", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
+           "localise", "FRAMES_COLUMNS", "TIMING_KEYS"]
 
 default_config = {
     "every": 4,                  # deterministic mode: detector on every N-th frame
@@ -784,44 +781,3 @@ def localise(map_root, run_root, out, method: str = "signatures", every: int = 4
         truth = read_run(run_root, check_images=False, skip=("groundtruth", "gps"))
         result.run = dataclasses.replace(run, truth_times=truth.truth_times, truth_poses=truth.truth_poses)
     return write_outputs(result, store, out, cfg["max_path_distance_m"], figure=figure)
-
-
-def add_oracle_argument(parser) -> None:
-    """``--oracle ins|none`` (shared by ``scenesig localise`` and ``python -m localiser.replay``)."""
-    parser.add_argument("--oracle", choices=ORACLES, default="ins",
-                        help="ins (default, the paper's protocol): start and reset from the run's INS/GPS; none: "
-                             "no INS/GPS -- global localisation from the map at start-up, relocalisation when lost")
-
-
-def run_from_args(args) -> int:
-    """``scenesig localise MAP RUN [--method M] --out DIR [--every N | --realtime [--speed X]]``."""
-    metrics = localise(args.map, args.run, args.out, method=args.method, every=getattr(args, "every", 4) or 4,
-                       realtime=bool(getattr(args, "realtime", False)), speed=float(getattr(args, "speed", 1.0) or 1.0),
-                       oracle=getattr(args, "oracle", None) or "ins")
-    keys = ("method", "run", "oracle", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
-            "blind_fraction_over_20m", "first_fix_m", "relocalisations", "false_fixes", "realtime_factor")
-    print(json.dumps({k: metrics[k] for k in keys}, indent=1))
-    return 0
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m localiser.replay", description=__doc__.splitlines()[0])
-    ap.add_argument("map", help="map folder")
-    ap.add_argument("run", help="survey run to replay")
-    ap.add_argument("--method", default="signatures")
-    ap.add_argument("--out", required=True)
-    mode = ap.add_mutually_exclusive_group()
-    mode.add_argument("--every", type=int, default=4, help="detector on every N-th frame (deterministic)")
-    mode.add_argument("--realtime", action="store_true", help="threads and mailboxes, stale frames dropped")
-    ap.add_argument("--speed", type=float, default=1.0, help="real-time playback speed factor")
-    add_oracle_argument(ap)
-    args = ap.parse_args(argv)
-    try:
-        return run_from_args(args)
-    except DataError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -30,21 +30,19 @@ Places are independent, so they build in parallel: joblib locally, or a Dask dis
 ``--scheduler``.  The driver process alone writes the map (:class:`mapping.store.MapWriter`), so an
 interrupted build resumes where it stopped and produces the same bytes.
 
-``python -m mapping.build RUN... --reference RUN --out maps/NAME`` is the same as ``scenesig build-map``.
+The command line is ``scenesig build-map RUN... --reference RUN --out maps/NAME [--config JSON]``.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 from surveys.geometry import invert
-from surveys.run import SurveyRun, read_run
+from surveys.run import SurveyRun
 from signatures import globaldesc
 from signatures.mining import mine_place
 from signatures.bank import default_config as bank_default_config
@@ -55,7 +53,7 @@ from mapping.pointmap import build_point_features
 from mapping.refine import Detections, REASONS, refine_landmarks
 from mapping.store import MapWriter, PlaceData, atomic_write_bytes, decode_place, encode_keyframe, place_file_name
 
-__all__ = ["default_config", "build_map", "build_place", "run_from_args"]
+__all__ = ["default_config", "build_map", "build_place", "load_config"]
 
 default_config = {
     "places": {},                 # overrides of mapping.places.default_config
@@ -459,7 +457,7 @@ def _bytes_by_part(files) -> dict:
     return {k: (v / len(files) if files else 0.0) for k, v in totals.items()}
 
 
-def _load_config(text: str | None) -> dict | None:
+def load_config(text: str | None) -> dict | None:
     """``--config``: build options (see :data:`default_config`) as JSON text or a ``.json`` file."""
     if not text:
         return None
@@ -474,25 +472,3 @@ def _load_config(text: str | None) -> dict | None:
     if not isinstance(cfg, dict):
         raise ValueError("--config must be a JSON object of build options")
     return cfg
-
-
-def run_from_args(args) -> int:
-    runs = [read_run(r) for r in args.runs]
-    ref_path = Path(args.reference).resolve()
-    reference = next((r for r in runs if r.root.resolve() == ref_path), None) or read_run(args.reference)
-    summary = build_map(runs, reference, args.out, jobs=args.jobs, scheduler=args.scheduler,
-                        config=_load_config(getattr(args, "config", None)))
-    print(json.dumps(summary, indent=2))
-    return 0
-
-
-if __name__ == "__main__":
-    from localiser.cli import main as _cli  # noqa: F401  (same arguments as `scenesig build-map`)
-    p = argparse.ArgumentParser(prog="python -m mapping.build")
-    p.add_argument("runs", nargs="+")
-    p.add_argument("--reference", required=True)
-    p.add_argument("--out", required=True)
-    p.add_argument("--jobs", type=int, default=1)
-    p.add_argument("--scheduler", default=None)
-    p.add_argument("--config", default=None, help="build options as JSON text or a .json file")
-    sys.exit(run_from_args(p.parse_args()))

@@ -16,7 +16,7 @@ from surveys.geometry import invert, transform
 from signatures.bank import Bank
 from mapping.store import MapStore
 
-__all__ = ["place_figure", "heatmap", "show_map", "run_from_args"]
+__all__ = ["place_figure", "heatmap", "show_map"]
 
 
 def _boxes_and_depths(store: MapStore, data) -> tuple[np.ndarray, np.ndarray]:
@@ -143,9 +143,3 @@ def show_map(map_dir, out, place: int | None = None, progress: bool = True) -> l
     written.append(heatmap(store, indices, out / "heatmap.png"))
     written.append(overview(store, out / "places.png"))
     return written
-
-
-def run_from_args(args) -> int:
-    for p in show_map(args.map, args.out, args.place):
-        print(p)
-    return 0

@@ -30,16 +30,14 @@ version 1 files, deflated plain float16, still load).
 The store only knows the bank as a ``dict[str, np.ndarray]`` (``Bank.to_arrays()`` /
 ``Bank.from_arrays()``), so it does not depend on how signatures are represented.
 
-``python -m mapping.store maps/NAME`` verifies a map and prints a summary.
+``scenesig map verify maps/NAME`` verifies a map and prints a summary (:func:`verify_summary`).
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
 import io
 import json
 import os
-import sys
 import threading
 import zipfile
 from collections import OrderedDict, namedtuple
@@ -52,7 +50,7 @@ import numpy as np
 from surveys.errors import DataError
 from surveys.geometry import Camera, yaw_of
 
-__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "PlaceData", "PlaceMeta", "MapWriter", "MapStore",
+__all__ = ["verify_summary", "FORMAT_NAME", "FORMAT_VERSION", "PlaceData", "PlaceMeta", "MapWriter", "MapStore",
            "encode_keyframe", "decode_keyframe", "place_file_name", "atomic_write_bytes", "software_version"]
 
 FORMAT_NAME = "scenesig-map"
@@ -872,23 +870,12 @@ def _validate_manifest(doc, path: Path) -> None:
             raise DataError(path, f"place {p['index']}: neighbours {bad} are not places of this map")
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m mapping.store", description="Verify a map and summarise it.")
-    ap.add_argument("map", help="map folder (maps/NAME)")
-    args = ap.parse_args(argv)
-    try:
-        store = MapStore.open(args.map, verify=True)
-    except DataError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+def verify_summary(root) -> dict:
+    """Open the map at ``root`` verifying every place's checksum; a summary of it (``scenesig map verify``)."""
+    store = MapStore.open(root, verify=True)
     sizes = [m.bytes for m in store.places.values()]
     sigs = [m.signatures for m in store.places.values()]
-    print(json.dumps({"map": str(store.root), "format_version": store.format_version, "software": store.software,
-                      "places": len(store), "bytes_per_place_mean": float(np.mean(sizes)) if sizes else 0.0,
-                      "signatures_per_place_mean": float(np.mean(sigs)) if sigs else 0.0,
-                      "checksums": "ok"}, indent=1))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    return {"map": str(store.root), "format_version": store.format_version, "software": store.software,
+            "places": len(store), "bytes_per_place_mean": float(np.mean(sizes)) if sizes else 0.0,
+            "signatures_per_place_mean": float(np.mean(sigs)) if sigs else 0.0,
+            "checksums": "ok"}

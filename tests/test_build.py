@@ -60,7 +60,7 @@ def test_dask_and_resumed_builds_give_the_local_build_bytes(world, tmp_path):
 def test_killed_build_resumes_to_the_same_bytes(world, tmp_path):
     runs, local = world
     out = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "mapping.build", *[str(r.root) for r in runs], "--reference", str(runs[0].root),
+    cmd = [sys.executable, "-m", "scenesig", "build-map", *[str(r.root) for r in runs], "--reference", str(runs[0].root),
            "--out", str(out), "--jobs", "1", "--config", json.dumps(CONFIG)]
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)

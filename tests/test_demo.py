@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from localiser.cli import main
-from localiser.demo import default_config
+from scenesig.cli import main
+from scenesig.demo import default_config
 
 METRIC_KEYS = {"method", "run", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
                "failures_per_km", "blind_fraction_over_20m", "ms_per_detection", "ms_per_solve",

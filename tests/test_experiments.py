@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from localiser.experiments import (aligned_frame, dead_reckoning, find_localise_outputs, frame_distances,
+from scenesig.experiments import (aligned_frame, dead_reckoning, find_localise_outputs, frame_distances,
                                    localisation_figures, matching_experiment, read_localise_output,
                                    signature_matches, write_matching)
 from mapping.pointmap import triangulate_keyframe

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from signatures import heading_bench as hb
+from benchmarks import heading as hb
 from surveys.grief import GriefPair, load
 
 REQUIRED_METHOD_KEYS = {"error_rate", "errors", "pairs", "seconds"}

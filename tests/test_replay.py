@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from localiser.cli import main as cli
+from scenesig.cli import main as cli
 from localiser.replay import FRAMES_COLUMNS, TIMING_KEYS, localise, replay, write_outputs
 from surveys.errors import DataError
 

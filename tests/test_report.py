@@ -8,8 +8,9 @@ import subprocess
 import numpy as np
 import pytest
 
-from localiser.experiments import MatchingResult, write_matching
-from localiser.report import build_report, run_from_args
+from scenesig.experiments import MatchingResult, write_matching
+from scenesig.cli import main
+from scenesig.report import build_report
 from surveys.errors import DataError
 
 from pipeline_world import NothingMethod, TruthMethod, make_live_run, make_map
@@ -114,11 +115,8 @@ def test_a_broken_figure_is_caught_by_the_browser_check(demo_folder, tmp_path):
 def test_report_cli_and_errors(demo_folder, tmp_path, capsys):
     base, _ = demo_folder
 
-    class Args:
-        results = [str(base / "localise" / "live" / "signatures"), str(base / "localise" / "live" / "orb")]
-        out = str(tmp_path / "r")
-
-    assert run_from_args(Args()) == 0
+    assert main(["report", str(base / "localise" / "live" / "signatures"), str(base / "localise" / "live" / "orb"),
+                 "--out", str(tmp_path / "r")]) == 0
     assert "report:" in capsys.readouterr().out
     assert (tmp_path / "r" / "index.html").is_file()
     (tmp_path / "empty").mkdir()

@@ -23,7 +23,7 @@ def _png(path):
 
 
 def test_map_show_writes_every_figure(map_root, tmp_path, capsys):
-    from localiser.cli import main
+    from scenesig.cli import main
 
     out = tmp_path / "fig"
     assert main(["map", "show", str(map_root), "--out", str(out)]) == 0
@@ -36,7 +36,7 @@ def test_map_show_writes_every_figure(map_root, tmp_path, capsys):
 
 
 def test_map_show_one_place(map_root, tmp_path, capsys):
-    from localiser.cli import main
+    from scenesig.cli import main
 
     out = tmp_path / "one"
     assert main(["map", "show", str(map_root), "--place", "1", "--out", str(out)]) == 0
@@ -71,7 +71,7 @@ def test_signature_boxes_and_depths_match_the_place(map_root):
 
 
 def test_map_show_rejects_a_folder_that_is_not_a_map(tmp_path, capsys):
-    from localiser.cli import main
+    from scenesig.cli import main
 
     assert main(["map", "show", str(tmp_path), "--out", str(tmp_path / "x")]) == 2
     assert "manifest" in capsys.readouterr().err

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from signatures.speed_bench import _bank_of, run_from_args
+from benchmarks.speed import _bank_of, run_from_args
 
 
 def test_bank_of_draws_with_repetition_only_when_needed():

@@ -9,7 +9,8 @@ import pytest
 from surveys.errors import DataError
 from surveys.run import read_run
 from surveys.sim import place_views
-from surveys.sim.simulate import run_from_args, simulate
+from scenesig.commands.simulate import run as run_from_args
+from surveys.sim.simulate import simulate
 from surveys.sim.world import World
 
 RUNS = ["sunny", "night"]
@@ -94,10 +95,10 @@ def test_parallel_jobs_give_the_same_runs(sim_out, tmp_path):
 
 
 def test_cli_errors_are_clear(tmp_path, capsys):
-    args = Namespace(out=tmp_path / "x", preset="tiny", seed=1, runs="sunny,blizzard", camera_hz=None, jobs=1)
+    args = Namespace(out=tmp_path / "x", preset="tiny", seed=1, runs="sunny,blizzard", camera_hz=None, jobs=1, overwrite=False)
     assert run_from_args(args) == 2
     assert "blizzard" in capsys.readouterr().err
-    args = Namespace(out=tmp_path / "y", preset="tiny", seed=1, runs="sunny", camera_hz=1.0, jobs=1)
+    args = Namespace(out=tmp_path / "y", preset="tiny", seed=1, runs="sunny", camera_hz=1.0, jobs=1, overwrite=False)
     assert run_from_args(args) == 0
     assert run_from_args(args) == 2  # refuses to overwrite an existing run
     assert "already exists" in capsys.readouterr().err

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from mapping.store import (
-    FORMAT_VERSION, MapStore, MapWriter, PlaceData, PlaceMeta, decode_keyframe, encode_keyframe, main,
+    FORMAT_VERSION, MapStore, MapWriter, PlaceData, PlaceMeta, decode_keyframe, encode_keyframe,
 )
+from scenesig.cli import main
 from surveys.errors import DataError
 from surveys.geometry import Camera, CAMERA_FROM_VEHICLE_AXES, make_pose, rot_z
 
@@ -273,7 +274,7 @@ def test_checksum_mismatch_names_the_file(tmp_path):
         store.load_place(2)
     with pytest.raises(DataError, match=r"place_0002\.npz"):
         MapStore.open(root, verify=True)
-    assert main([str(root)]) == 1
+    assert main(["map", "verify", str(root)]) == 2  # the CLI's one DataError exit status
 
 
 def test_corrupt_place_file_gives_clear_error(tmp_path):
@@ -332,7 +333,7 @@ def test_places_load_lazily_through_an_lru_cache(tmp_path):
         a.landmarks[0, 0] = 1.0  # shared through the cache: read-only
     with pytest.raises(KeyError):
         store.load_place(99)
-    assert main([str(root)]) == 0
+    assert main(["map", "verify", str(root)]) == 0
 
 
 def test_nearest_place_uses_position_and_heading(tmp_path):

@@ -2,7 +2,7 @@
 
 Public entry points:
 
-* :func:`surveys.sim.simulate.simulate` / ``python -m surveys.sim.simulate`` -- write survey runs;
+* :func:`surveys.sim.simulate.simulate` / ``scenesig simulate`` -- write survey runs;
 * :class:`surveys.sim.world.World` -- the procedural world (``World.load(world.json)`` regenerates it;
   ``World.render(T_world_camera, condition)`` gives image and true depth);
 * :func:`place_views` -- one place under many conditions;

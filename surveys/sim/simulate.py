@@ -15,14 +15,12 @@ route) depends on the preset and seed only; what differs between calls -- the co
 rate, where on the route the runs start (``--start-m``) -- is kept in ``world.json``'s ``runs`` entry,
 so runs of one call localise against a map built from runs of another call with the same seed.
 
-Run as ``python -m surveys.sim.simulate OUT --preset tiny --seed 1``.
+Run as ``scenesig simulate OUT --preset tiny --seed 1``.
 """
 from __future__ import annotations
 
-import argparse
 import calendar
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -35,7 +33,7 @@ from .noise import rng_for
 from .scene import RunScene, default_extrinsic
 from .world import GENERATOR_VERSION, PRESETS, World
 
-__all__ = ["default_config", "simulate", "simulate_run", "run_from_args", "main", "run_names"]
+__all__ = ["default_config", "simulate", "simulate_run", "run_names"]
 
 default_config = {
     "preset": "demo",
@@ -203,48 +201,3 @@ def simulate(out, preset: str = "demo", seed: int = 0, runs: list[str] | None = 
                "image_size": list(world.image_size)}
     (out / "simulate_summary.json").write_text(json.dumps(summary, indent=1))
     return summary
-
-
-def run_from_args(args) -> int:
-    """CLI entry: ``args.out``, ``args.preset``, ``args.seed``; optional ``args.runs`` (comma list of
-    conditions), ``args.camera_hz`` (default 20), ``args.jobs`` (default 1), ``args.overwrite``."""
-    runs = getattr(args, "runs", None)
-    if isinstance(runs, str):
-        runs = [r.strip() for r in runs.split(",") if r.strip()]
-    camera_hz = getattr(args, "camera_hz", None) or default_config["camera_hz"]
-    jobs = int(getattr(args, "jobs", None) or 1)
-    try:
-        summary = simulate(args.out, preset=args.preset, seed=int(args.seed), runs=runs, camera_hz=float(camera_hz),
-                           jobs=jobs, overwrite=bool(getattr(args, "overwrite", False)),
-                           start_m=float(getattr(args, "start_m", 0.0) or 0.0))
-    except (ValueError, FileExistsError) as exc:
-        print(f"scenesig simulate: error: {exc}", file=sys.stderr)
-        return 2
-    print(f"wrote {len(summary['runs'])} runs, {summary['frames']} frames in {summary['seconds']:.1f} s "
-          f"({summary['frames_per_second']:.1f} frames/s) to {args.out}")
-    for r in summary["runs"]:
-        print(f"  {r['name']}: {', '.join(r['conditions'])}")
-    return 0
-
-
-def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
-    p = p or argparse.ArgumentParser(prog="python -m surveys.sim.simulate", description=__doc__.split("\n")[0])
-    p.add_argument("out", type=Path, help="output folder")
-    p.add_argument("--preset", choices=sorted(PRESETS), default=default_config["preset"])
-    p.add_argument("--seed", type=int, default=default_config["seed"])
-    p.add_argument("--runs", default=None, help=f"comma-separated conditions ({', '.join(CONDITIONS)}); "
-                                                "default: the preset's list")
-    p.add_argument("--camera-hz", dest="camera_hz", type=float, default=None, help="camera rate (default 20)")
-    p.add_argument("--jobs", type=int, default=1, help="runs simulated in parallel")
-    p.add_argument("--start-m", dest="start_m", type=float, default=0.0,
-                   help="distance along the route (m) where every run begins (default 0); the world is the same")
-    p.add_argument("--overwrite", action="store_true", help="replace existing run folders")
-    return p
-
-
-def main(argv=None) -> int:
-    return run_from_args(build_parser().parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

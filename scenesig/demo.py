@@ -29,14 +29,13 @@ Layout of ``DIR``: ``world/`` (survey runs), ``map/``, ``localise/RUN/METHOD/``,
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
 import time
 from pathlib import Path
 
-__all__ = ["default_config", "run_demo", "run_from_args"]
+__all__ = ["default_config", "run_demo"]
 
 default_config = {
     "preset": "demo",
@@ -220,21 +219,3 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     _log(f"report: {index}")
     _log(f"summary: {out / 'summary.json'}")
     return summary
-
-
-def run_from_args(args) -> int:
-    """``scenesig demo [--out DIR] [--jobs N] [--preset P] [--camera-hz HZ]``."""
-    config = {"preset": getattr(args, "preset", None) or default_config["preset"]}
-    if getattr(args, "camera_hz", None):
-        config["camera_hz"] = float(args.camera_hz)
-    run_demo(args.out, jobs=int(getattr(args, "jobs", 2) or 2), config=config)
-    return 0
-
-
-if __name__ == "__main__":
-    ap = argparse.ArgumentParser(prog="python -m localiser.demo", description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="out/demo")
-    ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--camera-hz", type=float, default=None)
-    ap.add_argument("--preset", default="demo")
-    sys.exit(run_from_args(ap.parse_args()))

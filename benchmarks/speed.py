@@ -16,7 +16,7 @@ seed=0, n=31)``; if the simulator is not installed, the procedural place of
   (640x480, one core);
 * ``blas`` -- the BLAS library numpy uses (threadpoolctl).
 
-Timings are medians over repeats.  Run ``python -m signatures.speed_bench --json OUT``.
+Timings are medians over repeats.  Run ``scenesig bench speed --json OUT``.
 """
 from __future__ import annotations
 
@@ -147,10 +147,15 @@ def run_from_args(args) -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    """``scenesig bench speed [--json OUT]``."""
+    ap = argparse.ArgumentParser(prog="scenesig bench speed", description=__doc__.splitlines()[0])
     ap.add_argument("--json", help="write the result JSON here")
     return run_from_args(ap.parse_args(argv))
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    import sys
+
+    from scenesig.cli import main as _cli
+
+    raise SystemExit(_cli(["bench", "speed", *sys.argv[1:]]))

@@ -7,11 +7,11 @@ folder).  The page (``DIR/index.html``) has
   failures per km, share of distance more than 20 m blind;
 * failures per km of each point-feature method relative to scene signatures, per run (the paper's
   finding, in one number per run);
-* the localisation figures of §4.3-4.4 (:func:`localiser.experiments.localisation_figures`): per run,
+* the localisation figures of §4.3-4.4 (:func:`scenesig.experiments.localisation_figures`): per run,
   lateral / heading errors against truth for every method and the raw INS, speed, matches per frame with
   the localised frames marked; the dead-reckoning plot (Fig. 25);
 * the matching experiment's figures (Figs 11-14) when a ``matching.json`` is found below RESULTS
-  (written by :func:`localiser.experiments.write_matching`).
+  (written by :func:`scenesig.experiments.write_matching`).
 
 Figures are PNG files in ``DIR/figures`` referenced by relative links; the page has no script, no
 external style sheet and no web font, so it opens anywhere, offline.
@@ -25,7 +25,6 @@ import html
 import json
 import os
 import shutil
-import sys
 import time
 from pathlib import Path
 
@@ -36,7 +35,7 @@ from surveys.errors import DataError
 from .experiments import (find_localise_outputs, find_runs, localisation_figures, read_localise_output,
                           summary_rows)
 
-__all__ = ["build_report", "run_from_args", "find_matching"]
+__all__ = ["build_report", "find_matching"]
 
 _CSS = """
 body { font-family: -apple-system, "Segoe UI", Helvetica, Arial, sans-serif; margin: 1.5em auto; max-width: 1200px;
@@ -271,29 +270,3 @@ def _json_default(o):
     if isinstance(o, (np.floating,)):
         return float(o)
     raise TypeError(type(o).__name__)
-
-
-def run_from_args(args) -> int:
-    """``scenesig report RESULTS... --out DIR [--runs RUN...]``."""
-    index = build_report(args.results, args.out, runs=getattr(args, "runs", None) or None)
-    print(f"report: {index}")
-    return 0
-
-
-def main(argv=None) -> int:
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="python -m localiser.report", description=__doc__.splitlines()[0])
-    ap.add_argument("results", nargs="+", help="localise output folders or a demo folder containing them")
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--runs", nargs="*", default=None, help="survey runs (raw INS errors, true speed)")
-    args = ap.parse_args(argv)
-    try:
-        return run_from_args(args)
-    except DataError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

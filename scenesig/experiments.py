@@ -18,15 +18,13 @@ and for the raw INS, speed, matches per frame with the localised frames marked (
 dead-reckoning plot (Fig. 25): for each distance d, the probability of travelling more than d blind
 (distance-weighted, so its value at 20 m is ``blind_fraction_over_20m``), per method over all runs.
 
-``python -m localiser.experiments matching MAP RUN... --out DIR [--reference RUN]`` and
-``python -m localiser.experiments localisation RESULT... --out DIR [--runs RUN...]``.
+``scenesig experiment matching MAP RUN... --out DIR [--reference RUN]`` and
+``scenesig experiment localisation RESULT... --out DIR [--runs RUN...]``.
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import json
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,9 +38,9 @@ from surveys.geometry import interpolate_poses, yaw_of
 from surveys.run import SurveyRun, read_run
 from surveys.tum import read_tum
 
-from .evaluation import dead_reckoning_curve, lateral_heading_errors, travelled
-from .pointmethod import default_config as point_default
-from .pointmethod import match_to_map
+from localiser.evaluation import dead_reckoning_curve, lateral_heading_errors, travelled
+from localiser.pointmethod import default_config as point_default
+from localiser.pointmethod import match_to_map
 
 __all__ = ["default_config", "MatchingResult", "aligned_frame", "signature_matches", "point_matches",
            "matching_experiment", "write_matching", "plot_matching_counts", "plot_matching_heatmaps",
@@ -515,7 +513,7 @@ def frame_distances(output: LocaliseOutput, run: SurveyRun | None = None) -> np.
 
 def _ins_errors(output: LocaliseOutput, run: SurveyRun):
     """Lateral and heading errors of the raw INS/GPS against truth, across the map's reference path."""
-    from .replay import reference_path
+    from localiser.replay import reference_path
 
     if run is None or run.truth_times is None or run.groundtruth_times is None:
         return None
@@ -712,41 +710,3 @@ def find_runs(paths, names=None) -> dict:
             if names is None or r.name in names:
                 out.setdefault(r.name, r)
     return out
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m localiser.experiments", description=__doc__.splitlines()[0])
-    sub = ap.add_subparsers(dest="what", required=True)
-    m = sub.add_parser("matching", help="feature-matching experiment (Figs 11-14)")
-    m.add_argument("map")
-    m.add_argument("runs", nargs="+", help="test survey runs")
-    m.add_argument("--reference", default=None, help="the map's reference run (locates places by its truth)")
-    m.add_argument("--methods", default="signatures,orb,sift")
-    m.add_argument("--out", required=True)
-    lo = sub.add_parser("localisation", help="localisation figures (Figs 15-25) from localise outputs")
-    lo.add_argument("results", nargs="+", help="localise output folders or folders containing them")
-    lo.add_argument("--runs", nargs="*", default=[], help="survey runs (for raw INS errors and true speed)")
-    lo.add_argument("--out", required=True)
-    args = ap.parse_args(argv)
-    try:
-        if args.what == "matching":
-            store = MapStore.open(args.map)
-            runs = [read_run(r) for r in args.runs]
-            ref = read_run(args.reference) if args.reference else None
-            res = matching_experiment(store, runs, ref, {"methods": args.methods.split(",")})
-            write_matching(res, store, args.out)
-            print(json.dumps(res.summary(), indent=1))
-        else:
-            outs = [read_localise_output(f) for f in find_localise_outputs(args.results)]
-            runs = find_runs(args.runs, {o.run for o in outs}) if args.runs else {}
-            figs = localisation_figures(outs, args.out, runs)
-            print(json.dumps({"figures": [str(p) for p in figs["runs"].values()] + [str(figs["dead_reckoning"])]},
-                             indent=1))
-    except DataError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

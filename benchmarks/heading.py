@@ -26,7 +26,7 @@ Output: a JSON file ``{"dataset", "pairs", "tolerance_px", "methods": {NAME: {"e
 ``heading_<dataset>.png`` (one row per place: map image with the signature boxes, live image with
 where they fired; ORB's voting inliers when the signatures method is not run).
 
-Run ``python -m signatures.heading_bench --help`` (same arguments as the CLI subcommand).
+Run ``scenesig bench heading --help``.
 """
 from __future__ import annotations
 
@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scenesig.commands._types import positive_int
 from signatures import pointfeatures as pf
 from surveys.errors import DataError
 from surveys.grief import GriefDataset, GriefPair, load
@@ -490,33 +491,31 @@ def run_from_args(args) -> int:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The subcommand's arguments (shared by the CLI and ``python -m``)."""
+    """The subcommand's arguments ."""
     p.add_argument("dataset", help="a GRIEF-layout folder (images/ + ground_truth/, or "
                                    "season_00/ + season_01/)")
     p.add_argument("--methods", default="signatures,orb,sift",
                    help=f"comma-separated, from {', '.join(METHODS)}")
     p.add_argument("--json", required=True, help="output JSON file")
     p.add_argument("--figure", default=None, help="figure folder (default: beside the JSON)")
-    p.add_argument("--jobs", type=int, default=2, help="threads (point features) / processes "
+    p.add_argument("--jobs", type=positive_int, default=2, help="threads (point features) / processes "
                                                        "(signature banks)")
     p.add_argument("--baseline-preset", choices=sorted(BASELINE_PRESETS), default="grief",
                    help="point-feature variant: grief (sliding 20-px bin, mean; default) or "
                         "plain (fixed bins, bin centre, SIFT duplicates kept)")
-    p.add_argument("--max-pairs", type=int, default=None, help="only the first N pairs (quick look)")
+    p.add_argument("--max-pairs", type=positive_int, default=None, help="only the first N pairs (quick look)")
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m signatures.heading_bench",
-                                description=__doc__.split("\n")[0])
+    """``scenesig bench heading ARGS``; a :class:`~surveys.errors.DataError` is left to the CLI's handler."""
+    p = argparse.ArgumentParser(prog="scenesig bench heading", description=__doc__.split("\n")[0])
     add_arguments(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    try:
-        return run_from_args(args)
-    except DataError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return run_from_args(args)
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from scenesig.cli import main as _cli
+
+    raise SystemExit(_cli(["bench", "heading", *sys.argv[1:]]))

@@ -1,0 +1,26 @@
+"""``scenesig bench NAME ARGS...``: run a benchmark script of the top-level ``benchmarks`` package.
+
+Each benchmark is ``benchmarks/<module>.py`` with its own ``main(argv) -> int`` (own arguments, JSON on
+stdout, ``--json OUT``).  They are imported by name when run -- nothing in the code base imports
+``benchmarks`` statically -- so ``scenesig bench NAME --help`` shows the benchmark's own arguments.
+"""
+from __future__ import annotations
+
+import importlib
+
+#: ``scenesig bench NAME`` -> (module under ``benchmarks``, one-line description)
+BENCHMARKS = {
+    "heading": ("heading", "GRIEF heading-estimation benchmark (error rate at 20 px)."),
+    "speed": ("speed", "Training and detection speed on simulated images."),
+}
+
+
+def register(groups):
+    for name, (module, help) in BENCHMARKS.items():
+        p = groups["bench"].add_parser(name, help=help, description=help, add_help=False)
+        p.set_defaults(_run=run, _bench=module, _pass_extra=True)
+
+
+def run(args) -> int:
+    module = importlib.import_module(f"benchmarks.{args._bench}")
+    return int(module.main(list(args._extra)) or 0)

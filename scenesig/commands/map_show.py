@@ -1,0 +1,32 @@
+"""``scenesig map show MAP --out DIR`` and ``scenesig map verify MAP``: look at a map, check a map."""
+from __future__ import annotations
+
+import json
+
+
+def register(groups):
+    help = "Figures of a map: keyframes with signatures, a heat map."
+    p = groups["map"].add_parser("show", help=help, description=help)
+    p.add_argument("map", help="map folder")
+    p.add_argument("--place", type=int, default=None, help="only this place")
+    p.add_argument("--out", required=True, help="figure folder")
+    p.set_defaults(_run=run)
+    help = "Verify a map's checksums and summarise it as JSON."
+    v = groups["map"].add_parser("verify", help=help, description=help)
+    v.add_argument("map", help="map folder (maps/NAME)")
+    v.set_defaults(_run=run_verify)
+
+
+def run(args) -> int:
+    from mapping.show import show_map
+
+    for p in show_map(args.map, args.out, args.place):
+        print(p)
+    return 0
+
+
+def run_verify(args) -> int:
+    from mapping.store import verify_summary
+
+    print(json.dumps(verify_summary(args.map), indent=1))
+    return 0
