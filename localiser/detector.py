@@ -54,7 +54,7 @@ from mapping.store import MapStore, PlaceData
 from signatures.bank import Bank
 from surveys.geometry import Camera, invert, point_pose_jacobian
 
-__all__ = ["default_config", "Observation", "Detector", "search_windows", "measurement_covariance",
+__all__ = ["default_config", "Observation", "Detector", "blas_threads", "search_windows", "measurement_covariance",
            "projection_jacobians"]
 
 default_config = {
@@ -119,7 +119,7 @@ class Observation:
 _BLAS = None
 
 
-def _blas_threads(n: int | None):
+def blas_threads(n: int | None):
     """Context limiting numpy's BLAS to ``n`` threads (no-op for None or without threadpoolctl)."""
     global _BLAS
     if n is None:
@@ -295,7 +295,8 @@ class Detector:
 
     # ------------------------------------------------------------------------ detection
     def detect(self, image: np.ndarray, place: int, T_place_vehicle: np.ndarray | None = None,
-               P_prior: np.ndarray | None = None, whole_image: bool = False) -> Observation:
+               P_prior: np.ndarray | None = None, whole_image: bool = False,
+               max_classifiers: int | None = None) -> Observation:
         """Detect the place's signatures in an image.
 
         Parameters
@@ -304,11 +305,13 @@ class Detector:
         place : place index.
         T_place_vehicle, P_prior : motion prior and its covariance; without them (or with
             ``whole_image``) every classifier searches the whole image.
+        max_classifiers : a whole-image search runs only this many classifiers, those of highest
+            mining quality (global localisation verifies several places per frame; None: all).
         """
-        with _blas_threads(self.config["blas_threads"]):
-            return self._detect(image, place, T_place_vehicle, P_prior, whole_image)
+        with blas_threads(self.config["blas_threads"]):
+            return self._detect(image, place, T_place_vehicle, P_prior, whole_image, max_classifiers)
 
-    def _detect(self, image, place, T_place_vehicle, P_prior, whole_image) -> Observation:
+    def _detect(self, image, place, T_place_vehicle, P_prior, whole_image, max_classifiers=None) -> Observation:
         t0 = time.perf_counter()
         lp = self.place(place)
         data, bank = lp.data, lp.bank
@@ -323,6 +326,9 @@ class Detector:
         if wide:
             sel = np.arange(n)
             windows = None
+            if max_classifiers is not None and n > int(max_classifiers):
+                q = np.array([bank.classifiers[k].quality for k in ids], dtype=float)
+                sel = np.sort(np.argsort(-np.nan_to_num(q, nan=-np.inf), kind="stable")[:int(max_classifiers)])
         else:
             win, ok, _ = search_windows(data.landmarks, data.covariances, T_place_vehicle, P_prior, self.camera,
                                         self.T_vehicle_camera, self.Q, self.config)

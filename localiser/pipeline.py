@@ -101,6 +101,7 @@ class MotionPrior:
     next_place : the place ahead (to prefetch), or None.
     lost : True when the estimate is not good enough to search around predicted projections.
     distance_since_localisation : odometry distance since the last localisation or reset (m).
+    max_classifiers : global localisation's verification budget per place (methods may ignore it).
     """
 
     t: float
@@ -111,6 +112,7 @@ class MotionPrior:
     next_place: int | None
     lost: bool
     distance_since_localisation: float
+    max_classifiers: int | None = None   # a whole-image search may run only this many (the best) classifiers
 
     @property
     def T_place_vehicle(self) -> np.ndarray:
@@ -228,7 +230,8 @@ class SignatureLocaliser(WeakLocaliser):
         self.detector.prefetch(place)
 
     def detect(self, image, place, prior: MotionPrior) -> Observation:
-        return self.detector.detect(image, place, prior.T_place_vehicle, prior.covariance, whole_image=prior.lost)
+        return self.detector.detect(image, place, prior.T_place_vehicle, prior.covariance, whole_image=prior.lost,
+                                    max_classifiers=prior.max_classifiers)
 
     def solve(self, obs: Observation, place, prior: MotionPrior) -> Measurement:
         n = len(obs)

@@ -32,12 +32,14 @@ from mapping.store import MapStore
 from signatures import globaldesc
 from surveys.geometry import yaw_of
 
+from .detector import blas_threads
 from .pipeline import Localiser, Measurement, MotionPrior, WeakLocaliser
 
 __all__ = ["default_config", "PlaceRetrieval", "Relocaliser", "SearchResult", "place_descriptors"]
 
 default_config = {
     "shortlist": 3,                # places verified per detector frame
+    "verify_classifiers": 40,      # classifiers (the best by mining quality) searched per verified place
     "verify_min_inliers": 6,       # a verification needs this many solver inliers
     # Vague prior around a shortlisted place (GTSAM Pose3 order: rotation rad, translation m): the
     # vehicle is somewhere near the place, roughly facing its way.
@@ -99,7 +101,9 @@ class PlaceRetrieval:
         if q.shape[0] != self.D.shape[1]:
             raise ValueError(f"the map's place descriptors have {self.D.shape[1]} values, the live image's "
                              f"{q.shape[0]}: different image size or descriptor settings")
-        return globaldesc.similarity(q, self.D, self.owner, len(self.ids))
+        # one BLAS thread: a threaded matrix-vector product only spins against the other blocks
+        with blas_threads(1):
+            return globaldesc.similarity(q, self.D, self.owner, len(self.ids))
 
     def rank(self, image: np.ndarray, candidates=None) -> list[int]:
         """Place indices, best first (only ``candidates`` if given)."""
@@ -204,7 +208,8 @@ class Relocaliser:
         d_now = self.loc.distance_at(t)
         for p in shortlist:
             Twp = self.store.places[p].T_world_place
-            prior = MotionPrior(float(t), Twp, self._prior_cov, p, Twp, None, True, float("inf"))
+            prior = MotionPrior(float(t), Twp, self._prior_cov, p, Twp, None, True, float("inf"),
+                                cfg["verify_classifiers"])
             a = time.perf_counter()
             obs = self.method.detect(image, p, prior)
             b = time.perf_counter()

@@ -12,6 +12,8 @@ import importlib
 BENCHMARKS = {
     "heading": ("heading", "GRIEF heading-estimation benchmark (error rate at 20 px)."),
     "speed": ("speed", "Training and detection speed on simulated images."),
+    "places": ("places", "Place recognition on GRIEF data (recall@1, recall@5 per method)."),
+    "relocalise": ("relocalise", "Global localisation cost per frame at 30, 100, 300 places."),
 }
 
 
