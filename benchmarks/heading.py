@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -45,6 +44,7 @@ import numpy as np
 from scenesig.commands._types import positive_int
 from signatures import pointfeatures as pf
 from surveys.errors import DataError
+from surveys.io import atomic_path, atomic_write_text
 from surveys.grief import GriefDataset, GriefPair, load
 
 __all__ = ["default_config", "BASELINE_PRESETS", "METHODS", "MethodResult", "run_benchmark",
@@ -217,19 +217,6 @@ def run_point_features(dataset: GriefDataset, pairs: list[GriefPair], kind: str 
 # ---------------------------------------------------------------------------------- signatures
 
 
-def _signatures_module():
-    """Import the signatures method, or raise a RuntimeError saying what is missing."""
-    try:
-        from signatures import heading
-    except ImportError as exc:  # pragma: no cover - depends on the other stage being present
-        raise RuntimeError(f"method 'signatures' is not available: signatures.heading cannot be "
-                           f"imported ({exc}); run with --methods orb,sift") from exc
-    if not (hasattr(heading, "SignatureHeading") or hasattr(heading, "estimate_heading_signatures")):
-        raise RuntimeError("method 'signatures' is not available: signatures.heading has neither "
-                           "SignatureHeading nor estimate_heading_signatures")
-    return heading
-
-
 def _training_description(dataset: GriefDataset, cfg: dict) -> str:
     if dataset.kind == "sessions":
         return ("leave-one-session-out: for live session j, one bank per place mined from the "
@@ -245,27 +232,23 @@ def _training_description(dataset: GriefDataset, cfg: dict) -> str:
 def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 1,
                    progress: bool = True, config: dict | None = None) -> MethodResult:
     """Estimate every pair with the scene-signature method (:mod:`signatures.heading`)."""
-    heading = _signatures_module()
+    from signatures.heading import SignatureHeading
+
     t0 = time.perf_counter()
     detail, extra = {}, {}
-    if hasattr(heading, "SignatureHeading"):
-        est = heading.SignatureHeading(dataset, config, n_jobs=n_jobs, progress=progress)
-        estimates = np.asarray(est.estimate(list(pairs)), float)
-        for p in pairs:
-            rec = est.records.get(tuple(int(v) for v in p))
-            if rec is not None:
-                detail[p] = rec
-        stats = getattr(est, "bank_stats", [])
-        if stats:
-            sizes = [s.get("bank_size", 0) for s in stats]
-            extra["banks"] = len(stats)
-            extra["mean_bank_size"] = float(np.mean(sizes))
-            extra["mean_mining_seconds"] = float(np.mean([s.get("seconds", 0.0) for s in stats]))
-        cfg = est.config
-    else:
-        estimates = np.asarray(heading.estimate_heading_signatures(
-            dataset, list(pairs), progress=progress, config=config, n_jobs=n_jobs), float)
-        cfg = dict(getattr(heading, "default_config", {}), **(config or {}))
+    est = SignatureHeading(dataset, config, n_jobs=n_jobs, progress=progress)
+    estimates = np.asarray(est.estimate(list(pairs)), float)
+    for p in pairs:
+        rec = est.records.get(tuple(int(v) for v in p))
+        if rec is not None:
+            detail[p] = rec
+    stats = getattr(est, "bank_stats", [])
+    if stats:
+        sizes = [s.get("bank_size", 0) for s in stats]
+        extra["banks"] = len(stats)
+        extra["mean_bank_size"] = float(np.mean(sizes))
+        extra["mean_mining_seconds"] = float(np.mean([s.get("seconds", 0.0) for s in stats]))
+    cfg = est.config
     extra["training"] = _training_description(dataset, cfg)
     extra["jobs"] = n_jobs
     return MethodResult("signatures", estimates, time.perf_counter() - t0, extra, detail)
@@ -366,7 +349,8 @@ def make_figure(dataset: GriefDataset, results: dict[str, MethodResult], path: P
                  f"green = agrees with the estimate, orange = outvoted", fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=80)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80)
     plt.close(fig)
     return source or ""
 
@@ -416,8 +400,6 @@ def run_benchmark(dataset_path, methods=("signatures", "orb", "sift"), json_path
     if len(set(methods)) != len(methods):
         raise ValueError(f"method listed twice in {','.join(methods)}")
     dataset = load(dataset_path)
-    if "signatures" in methods:
-        _signatures_module()  # fail before spending minutes on the other methods
     pairs = list(dataset.pairs())
     if max_pairs is not None:
         pairs = pairs[:max_pairs]
@@ -453,9 +435,7 @@ def run_benchmark(dataset_path, methods=("signatures", "orb", "sift"), json_path
     if json_path is not None:
         json_path = Path(json_path)
         json_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = json_path.with_name(json_path.name + ".tmp")
-        tmp.write_text(json.dumps(doc, indent=1))
-        os.replace(tmp, json_path)
+        atomic_write_text(json_path, json.dumps(doc, indent=1))
     if figure_dir is None and json_path is not None:
         figure_dir = json_path.parent
     if figure_dir is not None and fig_pairs:

@@ -1,8 +1,7 @@
-"""Speed benchmark of scene signatures (issue §6): ``scenesig bench speed --json OUT``.
+"""Speed benchmark of scene signatures: ``scenesig bench speed --json OUT``.
 
 Measures, on simulated 640x480 images of one place (``surveys.sim.place_views(preset="demo",
-seed=0, n=31)``; if the simulator is not installed, the procedural place of
-:mod:`signatures.synthetic`, and the JSON says so):
+seed=0, n=31)``; the JSON's ``images`` names them):
 
 * ``train_seconds_per_place`` -- :func:`signatures.mining.mine_place` on the 31 images with all
   296 candidate shapes, pyramids included, on **one core** (BLAS, OpenCV and joblib limited to one
@@ -33,25 +32,20 @@ import numpy as np
 from signatures import hog as hogmod
 from signatures import mining
 from signatures.bank import Bank
+from surveys.io import atomic_write_text
 
 __all__ = ["run_speed_bench", "run_from_args", "place_images"]
 
 
 def place_images(n: int = 31, seed: int = 0):
     """(images, offsets, source) of one simulated place at 640x480."""
-    try:
-        from surveys.sim import place_views
-    except ImportError:
-        place_views = None
-    if place_views is not None:
-        views = place_views(preset="demo", seed=seed, n=n)
-        images = [np.asarray(v[0]) for v in views]
-        images = [im if im.shape[:2] == (480, 640) else
-                  cv2.resize(im, (640, 480), interpolation=cv2.INTER_AREA) for im in images]
-        return images, np.zeros((len(images), 2)), "surveys.sim.place_views(preset='demo')"
-    from signatures.synthetic import synthetic_place
-    images, offsets = synthetic_place(n, 640, 480, seed=seed)
-    return images, offsets, "signatures.synthetic.synthetic_place (surveys.sim.place_views missing)"
+    from surveys.sim import place_views
+
+    views = place_views(preset="demo", seed=seed, n=n)
+    images = [np.asarray(v[0]) for v in views]
+    images = [im if im.shape[:2] == (480, 640) else
+              cv2.resize(im, (640, 480), interpolation=cv2.INTER_AREA) for im in images]
+    return images, np.zeros((len(images), 2)), "surveys.sim.place_views(preset='demo')"
 
 
 def _blas_info() -> dict:
@@ -142,7 +136,7 @@ def run_from_args(args) -> int:
     print(text)
     if getattr(args, "json", None):
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(text + "\n")
+        atomic_write_text(args.json, text + "\n")
     return 0
 
 

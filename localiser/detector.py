@@ -1,4 +1,4 @@
-"""Detector block of the online localiser (paper 003, §3.3.1-3.3.2, Fig. 6).
+"""Detector block of the online localiser (McManus et al. 2015, §3.3.1-3.3.2, Fig. 6).
 
 Runs the signature bank of the current place (the localiser says which) on a live image and turns
 the firings into measurements for the eq. 10 solver:
@@ -33,14 +33,12 @@ the firings into measurements for the eq. 10 solver:
 The detector knows nothing of the pose graph; it reads a place index, a prior ``T_place_vehicle``
 and its covariance, and returns an :class:`Observation`.
 
-``python -m localiser.detector MAP RUN`` times detection on a run's frames with priors from the
+``scenesig bench detector MAP RUN`` times detection on a run's frames with priors from the
 run's INS poses (windowed and whole-image) and prints JSON.
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
-import json
 import threading
 import time
 from collections import OrderedDict
@@ -52,6 +50,8 @@ import numpy as np
 from mapping.refine import default_config as refine_default
 from mapping.store import MapStore, PlaceData
 from signatures.bank import Bank
+from surveys.validation import check_covariance
+from surveys.settings import merge_settings
 from surveys.geometry import Camera, invert, point_pose_jacobian
 
 __all__ = ["default_config", "Observation", "Detector", "blas_threads", "search_windows", "measurement_covariance",
@@ -181,7 +181,7 @@ def search_windows(landmarks, landmark_cov, T_place_vehicle, P_prior, camera: Ca
         image (the classifier is not run).
     uv : (n, 2) predicted pixels.
     """
-    cfg = {**default_config, **(config or {})}
+    cfg = merge_settings(default_config, config, "detector")
     uv, J_pose, J_point, front = projection_jacobians(landmarks, T_place_vehicle, camera, T_vehicle_camera,
                                                       cfg["min_depth_m"])
     n = len(uv)
@@ -229,10 +229,7 @@ class Detector:
     """
 
     def __init__(self, store: MapStore, camera: Camera, T_vehicle_camera: np.ndarray, config: dict | None = None):
-        unknown = set(config or {}) - set(default_config)
-        if unknown:
-            raise ValueError(f"unknown detector option(s) {sorted(unknown)}; known: {sorted(default_config)}")
-        self.config = {**default_config, **(config or {})}
+        self.config = merge_settings(default_config, config, "detector")
         self.store = store
         self.camera = camera
         self.T_vehicle_camera = np.asarray(T_vehicle_camera, dtype=float)
@@ -240,9 +237,7 @@ class Detector:
         if Q is None:
             # The covariance the landmarks were refined with, so map and live weights agree.
             Q = (store.params.get("config", {}).get("refine", {}) or {}).get("Q", refine_default["Q"])
-        self.Q = np.asarray(Q, dtype=float)
-        if self.Q.shape != (2, 2) or not np.all(np.linalg.eigvalsh(self.Q) > 0):
-            raise ValueError(f"Q must be a positive definite 2x2 matrix, got {self.Q.tolist()}")
+        self.Q = check_covariance(Q, 2, "Q")
         self._cache: OrderedDict[int, _LoadedPlace] = OrderedDict()
         self._pending: dict[int, Future] = {}
         self._lock = threading.Lock()
@@ -388,45 +383,3 @@ class Detector:
     @property
     def ms_per_detection(self) -> float:
         return self.ms_total / max(self.n_detections, 1)
-
-
-# --------------------------------------------------------------------------------- benchmark
-def benchmark(map_root, run_root, frames: int = 40, seed: int = 0) -> dict:
-    """Detection time and hit rate on a run's frames, priors from the run's INS, windowed vs whole image."""
-    from surveys.run import read_run
-
-    store = MapStore.open(map_root)
-    run = read_run(run_root)
-    det = Detector(store, run.camera, run.T_vehicle_camera)
-    rng = np.random.default_rng(seed)
-    idx = np.sort(rng.choice(len(run), size=min(frames, len(run)), replace=False))
-    P = np.diag([1e-4, 1e-4, 4e-4, 0.25, 0.25, 0.04])
-    out = {}
-    for mode in ("windows", "whole_image"):
-        ms, hits = [], []
-        for i in idx:
-            T = run.pose_at(run.frame_times[i])
-            place = store.nearest_place(T)
-            Twp = store.places[place].T_world_place
-            img = run.image(int(i), gray=not det.place(place).bank.hog.get("color", False))
-            obs = det.detect(img, place, invert(Twp) @ T, P, whole_image=(mode == "whole_image"))
-            ms.append(obs.ms)
-            hits.append(len(obs))
-        out[mode] = {"ms_per_detection_median": float(np.median(ms)), "detections_mean": float(np.mean(hits))}
-    det.close()
-    return out
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m localiser.detector",
-                                 description="Time bank detection on a run's frames (priors from its INS).")
-    ap.add_argument("map")
-    ap.add_argument("run")
-    ap.add_argument("--frames", type=int, default=40)
-    args = ap.parse_args(argv)
-    print(json.dumps(benchmark(args.map, args.run, args.frames), indent=2))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,4 +1,4 @@
-"""Localisation metrics against exact truth (paper 003, §4.3-4.4; issue 5 ``metrics.json``).
+"""Localisation metrics against exact truth (McManus et al. 2015, §4.3-4.4).
 
 * **Lateral error** -- across the reference path: the signed component of ``p_est - p_truth`` along
   the path's left normal (in the ground plane) at the path point nearest the truth; positive means

@@ -1,4 +1,4 @@
-"""The online localisation pipeline (paper 003, §3.3, Fig. 6): weak localisers and the localiser block.
+"""The online localisation pipeline (McManus et al. 2015, §3.3, Fig. 6): weak localisers and the localiser block.
 
 Three blocks, as in the paper's Fig. 6:
 
@@ -13,11 +13,11 @@ Three blocks, as in the paper's Fig. 6:
   and applies the failure rule: more than 20 m on dead reckoning since the last localisation -> reset
   from the oracle (the run's INS/GPS) and count a failure.
 
-A *weak localiser* (paper §3.3.1) is any method that, given a live image, a place and a motion prior,
+A *weak localiser* (McManus et al. 2015, §3.3.1) is any method that, given a live image, a place and a motion prior,
 returns a localisation constraint or nothing.  :class:`WeakLocaliser` is that interface, split into
 ``detect`` (image -> observation, the detector thread) and ``solve`` (observation -> :class:`Measurement`,
 the solver thread) so the real-time replay can run them concurrently; ``measure`` chains them.
-Scene signatures are :class:`SignatureLocaliser`; point features (ORB / SIFT, issue 6) plug in as
+Scene signatures are :class:`SignatureLocaliser`; point features (ORB / SIFT) plug in as
 another implementation registered with :func:`register_method`, and everything else (replay,
 failure rule, outputs, metrics) is shared.
 
@@ -34,6 +34,7 @@ from typing import Callable
 import numpy as np
 
 from mapping.store import MapStore
+from surveys.settings import merge_settings
 from surveys.geometry import Camera, invert
 
 from .detector import Detector, Observation
@@ -59,7 +60,7 @@ default_config = {
     # localisations the marginal becomes tighter than the map itself is accurate, and the solver
     # would then gate good localisations as "inconsistent with the prior".
     "prior_floor_sigma": [0.003, 0.003, 0.005, 0.2, 0.2, 0.05],
-    "failure_distance_m": 20.0,      # paper §4.3
+    "failure_distance_m": 20.0,      # McManus et al. 2015, §4.3
     "lost_after_m": 10.0,            # beyond this distance blind the detector searches the whole image
     "max_heading_diff_deg": 90.0,    # a place passed the other way round is not "nearest"
     # Without an oracle (``oracle=None``): the covariance of a pose found by global localisation or
@@ -70,13 +71,7 @@ default_config = {
 
 
 def _merge(config: dict | None, defaults: dict, what: str) -> dict:
-    cfg = dict(defaults)
-    if config:
-        unknown = set(config) - set(defaults)
-        if unknown:
-            raise ValueError(f"unknown {what} option(s) {sorted(unknown)}; known: {sorted(defaults)}")
-        cfg.update(config)
-    return cfg
+    return merge_settings(defaults, config, what)
 
 
 def odometry_covariance(T_increment: np.ndarray, sigma_per_sqrt_m, sigma_floor) -> np.ndarray:
@@ -150,7 +145,7 @@ class Measurement:
 # the method interface
 # ------------------------------------------------------------------------------------------------
 class WeakLocaliser:
-    """Interface of a weak localiser (paper §3.3.1): image + place + motion prior -> constraint or none.
+    """Interface of a weak localiser (McManus et al. 2015, §3.3.1): image + place + motion prior -> constraint or none.
 
     Implement either :meth:`measure` alone (a single-stage method: then :meth:`detect` does all the
     work and :meth:`solve` passes its answer on), or :meth:`detect` and :meth:`solve` (two stages,
@@ -267,10 +262,7 @@ def make_method(name: str, store: MapStore, camera: Camera, T_vehicle_camera, co
     if name not in _METHODS and name in _LAZY:
         import importlib
 
-        try:
-            importlib.import_module(_LAZY[name])
-        except ImportError as exc:
-            raise ValueError(f"method {name!r} needs module {_LAZY[name]}, which could not be imported: {exc}") from None
+        importlib.import_module(_LAZY[name])
     if name not in _METHODS:
         raise ValueError(f"unknown method {name!r}; available: {available_methods()}")
     return _METHODS[name](store, camera, T_vehicle_camera, config)

@@ -1,4 +1,4 @@
-"""Point-feature weak localisers (ORB, SIFT): the baselines of paper 003 §4, on the same pipeline.
+"""Point-feature weak localisers (ORB, SIFT): the baselines of McManus et al. 2015, §4, on the same pipeline.
 
 ``scenesig localise MAP RUN --method orb|sift`` runs this instead of the scene signatures; replay, the
 pose graph, SE(2) snapping, the failure rule (20 m blind -> oracle reset), the outputs and the metrics are
@@ -9,7 +9,7 @@ Per frame, for the place the localiser chose:
 * **detect** -- the live image's features (upright ORB or SIFT, the strongest ``n_features``;
   :func:`signatures.pointfeatures.extract`), matched to the place's keyframe features
   (:mod:`mapping.pointmap`: those with a triangulated 3D point) by *mutual nearest neighbour* and then
-  the *DAPC* adaptive test of seed 002 (eqs. 6-7): keep a mutual match when its best distance is below
+  the *DAPC* adaptive test of "Multi-Modal Scene Matching Location Algorithm Based on M2Det" (§3.4, eqs. 6-7): keep a mutual match when its best distance is below
   its second-best distance minus the mean gap (second - best) over the mutual matches.  No ratio to tune:
   the threshold adapts to how separable this image pair's descriptors are -- which is exactly what
   changes between a sunny map and a night or fog live image.
@@ -33,6 +33,7 @@ import numpy as np
 from mapping.pointmap import keypoint_sigma, point_covariances, point_features
 from mapping.store import MapStore
 from signatures.pointfeatures import PointFeatures, extract, match
+from surveys.settings import merge_settings
 from surveys.geometry import Camera
 
 from .pipeline import Measurement, MotionPrior, WeakLocaliser, register_method
@@ -45,7 +46,7 @@ default_config = {
     "n_features": 1000,          # live features per frame (strongest by detector response)
     "features": {},              # overrides of signatures.pointfeatures.default_config (upright, orb, sift)
     "mutual": True,              # mutual nearest neighbours ...
-    "filter": "dapc",            # ... then DAPC (seed 002); "ratio" or "none" for comparisons
+    "filter": "dapc",            # ... then DAPC (M2Det scene-matching paper, §3.4); "ratio" or "none" for comparisons
     "ratio": 0.8,                # only for filter="ratio"
     "min_matches": 6,            # fewer matches: no solve ("too_few_matches")
     "pixel_sigma": 1.0,          # keypoint std. dev. (px) at the finest octave
@@ -60,11 +61,7 @@ default_config = {
 
 
 def _merge(config: dict | None) -> dict:
-    cfg = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
-    for k, v in (config or {}).items():
-        if k not in cfg:
-            raise ValueError(f"unknown point-feature method option {k!r}; known: {sorted(cfg)}")
-        cfg[k] = {**cfg[k], **v} if isinstance(cfg[k], dict) else v
+    cfg = merge_settings(default_config, config, "point-feature method", open=("features", "solver", "pnp"))
     if cfg["filter"] not in ("dapc", "ratio", "none"):
         raise ValueError(f"filter must be 'dapc', 'ratio' or 'none', got {cfg['filter']!r}")
     unknown = set(cfg["solver"]) - set(solver_default)
@@ -78,7 +75,7 @@ def _merge(config: dict | None) -> dict:
 
 def match_to_map(live: PointFeatures, mapf: PointFeatures, filter: str = "dapc", mutual: bool = True,
                  ratio: float = 0.8):
-    """Matches map -> live: mutual nearest neighbours, then DAPC over the mutual pairs (seed 002 order).
+    """Matches map -> live: mutual nearest neighbours, then DAPC over the mutual pairs (the order of the M2Det scene-matching paper, §3.4).
 
     Returns
     -------

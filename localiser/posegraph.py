@@ -1,4 +1,4 @@
-"""Sliding-window pose graph of the localiser (paper 003, §3.3.2, Fig. 6).
+"""Sliding-window pose graph of the localiser (McManus et al. 2015, §3.3.2, Fig. 6).
 
 The graph holds vehicle poses ``T_world_vehicle`` at *keyframes* over the last ``window_seconds``
 and three kinds of constraint: (i) odometry between consecutive keyframes, (ii) sparse
@@ -29,6 +29,8 @@ import time
 import gtsam
 import numpy as np
 
+from surveys.validation import check_covariance, check_pose
+from surveys.settings import merge_settings
 from surveys.geometry import invert
 
 from .solver import pose_exp, pose_log
@@ -43,7 +45,7 @@ default_config = {
                                   # do not see gets σ = 1000 m / rad instead of a singular system
     "relinearize_threshold": 0.01,
     "extra_iterations": 1,        # extra iSAM2 iterations after a localisation (it can move the window)
-    "failure_distance_m": 20.0,   # paper §4.3: more than 20 m blind is a failure
+    "failure_distance_m": 20.0,   # McManus et al. 2015, §4.3: more than 20 m blind is a failure
 }
 
 
@@ -53,24 +55,11 @@ def _adjoint(T: np.ndarray) -> np.ndarray:
 
 
 def _check_pose(T, name) -> np.ndarray:
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"{name} must be a finite 4x4 pose, got shape {T.shape}")
-    if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or not np.allclose(T[3], [0, 0, 0, 1]):
-        raise ValueError(f"{name} is not a rigid transform (rotation not orthonormal or bad last row)")
-    return T
+    return check_pose(T, name, rigid=True)
 
 
 def _check_spd(M, name) -> np.ndarray:
-    M = np.asarray(M, dtype=float)
-    if M.shape != (6, 6) or not np.all(np.isfinite(M)):
-        raise ValueError(f"{name} must be a finite 6x6 matrix, got shape {M.shape}")
-    M = 0.5 * (M + M.T)
-    try:
-        np.linalg.cholesky(M)
-    except np.linalg.LinAlgError:
-        raise ValueError(f"{name} must be positive definite") from None
-    return M
+    return check_covariance(M, 6, name, symmetrise=True)
 
 
 class DeadReckoningMonitor:
@@ -126,12 +115,7 @@ class PoseGraph:
     def __init__(self, window_seconds: float | None = None, keyframe_interval_s: float | None = None,
                  huber_k: float | None = None, failure_distance_m: float | None = None,
                  config: dict | None = None):
-        cfg = dict(default_config)
-        if config:
-            unknown = set(config) - set(default_config)
-            if unknown:
-                raise ValueError(f"unknown pose-graph option(s) {sorted(unknown)}; known: {sorted(default_config)}")
-            cfg.update(config)
+        cfg = merge_settings(default_config, config, "pose-graph")
         for k, v in (("window_seconds", window_seconds), ("keyframe_interval_s", keyframe_interval_s),
                      ("huber_k", huber_k), ("failure_distance_m", failure_distance_m)):
             if v is not None:
@@ -429,62 +413,3 @@ class PoseGraph:
     def ms_per_update(self) -> float:
         """Mean wall time of a smoother update (ms)."""
         return 1e3 * self.update_seconds / max(self.n_updates, 1)
-
-
-# --------------------------------------------------------------------------------- benchmark
-def benchmark(seconds: float = 60.0, odometry_hz: float = 20.0, localisation_every: int = 4,
-              window_seconds: float = 5.0, seed: int = 0) -> dict:
-    """Timing of a synthetic drive: odometry at ``odometry_hz``, a localisation every N-th sample.
-
-    Returns ms per odometry message (including the keyframe updates it triggers), ms per
-    localisation, ms per smoother update and ms per latest-pose query.
-    """
-    from surveys.geometry import make_pose, rot_z
-
-    rng = np.random.default_rng(seed)
-    dt = 1.0 / odometry_hz
-    n = int(seconds * odometry_hz)
-    step = make_pose(rot_z(0.1 * dt), [10.0 * dt, 0, 0])
-    odo_sig = np.array([1e-3, 1e-3, 2e-3, 0.02, 0.01, 0.01])
-    loc_sig = np.array([0.005, 0.005, 0.01, 0.3, 0.3, 0.3])
-    g = PoseGraph(window_seconds=window_seconds)
-    truth = np.eye(4)
-    g.reset(0.0, truth, np.diag([1e-4] * 3 + [1e-2] * 3))
-    t_odo = t_loc = t_est = 0.0
-    n_loc = 0
-    for k in range(1, n):
-        truth = truth @ step
-        meas = step @ pose_exp(rng.normal(0, 1, 6) * odo_sig)
-        t0 = time.perf_counter()
-        g.add_odometry(k * dt, meas, np.diag(odo_sig ** 2))
-        t1 = time.perf_counter()
-        if k % localisation_every == 0:
-            g.add_localisation(k * dt, truth @ pose_exp(rng.normal(0, 1, 6) * loc_sig), cov=np.diag(loc_sig ** 2))
-            n_loc += 1
-        t2 = time.perf_counter()
-        g.estimate()
-        t3 = time.perf_counter()
-        t_odo += t1 - t0
-        t_loc += t2 - t1
-        t_est += t3 - t2
-    return {"seconds_simulated": seconds, "odometry_messages": n - 1, "localisations": n_loc,
-            "smoother_updates": g.n_updates, "ms_per_odometry_update": 1e3 * t_odo / (n - 1),
-            "ms_per_localisation": 1e3 * t_loc / max(n_loc, 1), "ms_per_smoother_update": g.ms_per_update,
-            "ms_per_estimate": 1e3 * t_est / (n - 1)}
-
-
-def main(argv=None) -> int:
-    import argparse
-    import json
-
-    ap = argparse.ArgumentParser(prog="python -m localiser.posegraph",
-                                 description="Time the sliding-window pose graph on a synthetic drive.")
-    ap.add_argument("--seconds", type=float, default=60.0)
-    ap.add_argument("--window", type=float, default=5.0, help="window length (s)")
-    args = ap.parse_args(argv)
-    print(json.dumps(benchmark(args.seconds, window_seconds=args.window), indent=2))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

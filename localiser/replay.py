@@ -1,6 +1,6 @@
 """Replay a survey run through the online localiser: ``scenesig localise MAP RUN --out DIR``.
 
-Two modes (issue 5 §1):
+Two modes:
 
 * **deterministic** (default): images and odometry are fed in timestamp order on one thread; the
   detector runs on every ``every``-th frame (4: 5 Hz on a 20 Hz camera, as in the paper) and the
@@ -38,7 +38,6 @@ Command line: ``scenesig localise MAP RUN --out DIR [--method signatures] [--ora
 """
 from __future__ import annotations
 
-import json
 import threading
 import time
 from dataclasses import dataclass, field
@@ -47,11 +46,12 @@ from pathlib import Path
 import numpy as np
 
 from mapping.store import MapStore
+from surveys.settings import merge_settings
 from surveys.errors import DataError
 from surveys.run import SurveyRun, read_run
-from surveys.tum import write_tum
 
-from .evaluation import ReferencePath, evaluate
+from .outputs import (FRAMES_COLUMNS, TIMING_KEYS, compute_metrics, map_relative_truth,  # noqa: F401  (re-exported)
+                      reference_path, write_outputs)
 from .pipeline import Localiser, Measurement, WeakLocaliser, make_method
 
 __all__ = ["default_config", "ORACLES", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
@@ -69,16 +69,8 @@ default_config = {
     "method": {},                # method configuration (e.g. {"detector": {...}, "solver": {...}})
 }
 
-#: Columns of ``frames.csv``.
-FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
-                  "distance_since_localisation")
 #: Where the localiser's first pose and its recovery after a failure come from.
 ORACLES = ("ins", "none")
-#: ``metrics.json`` entries that measure the machine rather than the result (they differ between runs).
-TIMING_KEYS = ("ms_per_detection", "ms_per_solve", "ms_per_odometry_update", "ms_per_retrieval", "realtime_factor",
-               "wall_seconds")
-#: Accepted localisations further than this from the truth are ``false_fixes`` (metres).
-FALSE_FIX_M = 5.0
 
 
 @dataclass
@@ -256,7 +248,7 @@ class _FramePrefetcher:
         self._pool.shutdown(wait=True)
 
 
-def _search(reloc, run: SurveyRun, i: int, t: float, img, rec: _Recorder, ms_prepare: float, method) -> None:
+def _search(reloc, run: SurveyRun, i: int, t: float, img, rec: _Recorder, ms_prepare: float) -> None:
     """Global search for frame i (not localised, no oracle): retrieval, verification, sequence check."""
     raw = img if isinstance(img, np.ndarray) else run.image(i, gray=True)
     r = reloc.search(img, t, raw)
@@ -265,13 +257,14 @@ def _search(reloc, run: SurveyRun, i: int, t: float, img, rec: _Recorder, ms_pre
 
 def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t: float, rec: _Recorder,
                 frames: _FramePrefetcher | None = None, reloc=None) -> None:
-    """Detector + solver for frame i at time t (deterministic mode: inline)."""
+    """Detector + solver for frame i at time t (deterministic mode: inline); the global search instead
+    while a localiser without an oracle is not localised."""
     if frames is not None:
         img, ms_prepare = frames.get(i)
     else:
         img, ms_prepare = run.image(i, gray=not method.color), 0.0
     if reloc is not None and loc.lost:
-        _search(reloc, run, i, t, img, rec, ms_prepare, method)
+        _search(reloc, run, i, t, img, rec, ms_prepare)
         return
     prior = loc.prior(t)
     method.prefetch(prior.next_place)
@@ -338,7 +331,7 @@ def _realtime(method, loc, run, rec, speed, progress, reloc=None):
                 img = run.image(i, gray=not method.color)
                 if reloc is not None and loc.lost:
                     # not localised: the whole search (retrieval, verification, sequence check) here
-                    _search(reloc, run, i, t, img, rec, 0.0, method)
+                    _search(reloc, run, i, t, img, rec, 0.0)
                     continue
                 prior = loc.prior(t)
                 method.prefetch(prior.next_place)
@@ -422,18 +415,15 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     retrieval : the coarse place retrieval for ``oracle="none"`` (default: the map's descriptors,
         :class:`localiser.relocalise.PlaceRetrieval`).
     """
-    cfg = {**default_config, **(config or {})}
-    unknown = set(config or {}) - set(default_config)
-    if unknown:
-        raise ValueError(f"unknown replay option(s) {sorted(unknown)}; known: {sorted(default_config)}")
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
+    oracle = oracle or cfg["oracle"]
+    if oracle not in ORACLES:
+        raise ValueError(f"oracle must be one of {ORACLES}, got {oracle!r}")
     every = int(every)
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
     if not speed > 0:
         raise ValueError(f"speed must be > 0, got {speed}")
-    oracle = oracle or cfg["oracle"]
-    if oracle not in ORACLES:
-        raise ValueError(f"oracle must be one of {ORACLES}, got {oracle!r}")
     _check_compatible(store, run)
     own = isinstance(method, str)
     if own:
@@ -480,286 +470,6 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
                         oracle, loc.oracle_reads, rec.valid.copy(), loc.first_fix_time, list(loc.relocalisations))
 
 
-# ------------------------------------------------------------------------------------------------
-# metrics and outputs
-# ------------------------------------------------------------------------------------------------
-def reference_path(store: MapStore) -> ReferencePath:
-    """The reference path: the map's places in order, closed if the route is a loop."""
-    ids = sorted(store.places)
-    poses = np.stack([store.places[i].T_world_place for i in ids])
-    if len(ids) > 2 and ids[-1] in store.places[ids[0]].neighbours:
-        poses = np.concatenate([poses, poses[:1]])
-    return ReferencePath(poses)
-
-
-def map_relative_truth(store: MapStore, truth_poses: np.ndarray) -> np.ndarray | None:
-    """Truth expressed in the map's frame, or None when the map does not record its places' truth.
-
-    The map's frame is realised by the training runs' INS (combined per place by
-    :mod:`mapping.georef`), whose error (metres, for a GPS-aided INS) every place carries.  A simulated map records each place's exact pose (``extra["T_truth_place"]``),
-    so a true pose can be carried into the map frame through the nearest place:
-    ``T_world_place · T_truth_place⁻¹ · T_truth``.  Errors against that are the localiser's own;
-    errors against the raw truth add the map's georeferencing error, which no localiser can remove.
-    """
-    ids = sorted(store.places)
-    if not ids or any("T_truth_place" not in store.places[i].extra for i in ids):
-        return None
-    Tw = np.stack([store.places[i].T_world_place for i in ids])
-    Tt = np.stack([np.asarray(store.places[i].extra["T_truth_place"], float) for i in ids])
-    P = np.asarray(truth_poses, float).reshape(-1, 4, 4)
-    near = np.argmin(np.linalg.norm(P[:, None, :3, 3] - Tt[None, :, :3, 3], axis=2), axis=1)
-    corr = Tw @ np.linalg.inv(Tt)             # (K,4,4) truth -> map frame at each place
-    return corr[near] @ P
-
-
-def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: float | None = None):
-    """``metrics.json`` content and the evaluation behind it (per-frame errors).
-
-    Keys: ``method``, ``run``, ``conditions``; ``lateral_error_m`` and ``heading_error_deg``
-    (``{"median", "mean", "p95"}`` of absolute errors against the run's exact truth, lateral = across
-    the reference path through the map's places; :mod:`localiser.evaluation`); ``localised_fraction``,
-    ``failures`` (oracle resets), ``failures_per_km``, ``blind_fraction_over_20m``; where the map
-    records its places' truth (simulated maps) also ``lateral_error_map_m``, ``heading_error_map_deg``
-    (the same errors relative to the map, see :func:`map_relative_truth`) and
-    ``map_georeference_error_m`` (how far the map's places are from their truth); timings
-    ``ms_per_detection``, ``ms_per_solve``, ``ms_per_odometry_update``, ``realtime_factor`` (data
-    duration / wall time of the replay), ``wall_seconds``; bookkeeping ``mode``, ``every``,
-    ``distance_m``, ``duration_s``, ``frames``, ``frames_evaluated``, ``detector_frames``,
-    ``localisations``, ``truth_source``, ``map``, and in real-time mode ``frames_dropped`` and
-    ``frames_detected``.  Without ``truth.tum`` the errors are taken against ``groundtruth.tum``
-    (``truth_source``).
-    """
-    run = result.run
-    if run.truth_times is not None:
-        tt, tp, source = run.truth_times, run.truth_poses, "truth"
-    elif run.groundtruth_times is not None:
-        tt, tp, source = run.groundtruth_times, run.groundtruth_poses, "groundtruth"
-    else:
-        raise DataError(run.root or Path(run.name), "no truth.tum or groundtruth.tum to evaluate against")
-    ev = _evaluate_valid(result, tt, tp, store, max_path_distance_m)
-    m = ev.metrics
-    tm = result.timings
-    map_errors = {}
-    tmap = map_relative_truth(store, tp) if source == "truth" else None
-    if tmap is not None:
-        from .evaluation import summary
-
-        evm = _evaluate_valid(result, tt, tmap, store, max_path_distance_m)
-        # the map's own error: its places against their truth
-        ids = sorted(store.places)
-        off = [np.linalg.norm(store.places[i].T_world_place[:2, 3] - np.asarray(store.places[i].extra["T_truth_place"])[:2, 3])
-               for i in ids]
-        map_errors = {"lateral_error_map_m": evm.metrics["lateral_error_m"],
-                      "heading_error_map_deg": evm.metrics["heading_error_deg"],
-                      "map_georeference_error_m": summary(off)}
-    metrics = {
-        "method": result.method,
-        "run": run.name,
-        "conditions": list(run.conditions),
-        "lateral_error_m": m["lateral_error_m"],
-        "heading_error_deg": m["heading_error_deg"],
-        "localised_fraction": m["localised_fraction"],
-        "failures": int(result.failures),
-        "failures_per_km": m["failures_per_km"],
-        "blind_fraction_over_20m": m["blind_fraction_over_20m"],
-        **_no_oracle_metrics(result, ev, tt, tp if tmap is None else tmap),
-        **map_errors,
-        "ms_per_detection": tm.get("ms_per_detection"),
-        "ms_per_solve": tm.get("ms_per_solve"),
-        "ms_per_odometry_update": tm.get("ms_per_odometry_update"),
-        "ms_per_retrieval": tm.get("ms_per_retrieval"),
-        "realtime_factor": tm.get("realtime_factor"),
-        "wall_seconds": tm.get("wall_seconds"),
-        "mode": result.mode,
-        "every": result.every,
-        "distance_m": m["distance_m"],
-        "duration_s": tm.get("duration_s"),
-        "frames": int(len(result.times)),
-        "frames_evaluated": m["frames_evaluated"],
-        "detector_frames": int(result.detector_ran.sum()),
-        "localisations": int(result.localised.sum()),
-        "truth_source": source,
-        "map": str(store.root),
-    }
-    for k in ("frames_dropped", "frames_detected"):
-        if k in tm:
-            metrics[k] = tm[k]
-    return metrics, ev
-
-
-def _evaluate_valid(result: ReplayResult, truth_times, truth_poses, store: MapStore, max_path_distance_m):
-    """:func:`localiser.evaluation.evaluate` over the frames with a world pose (all of them with an oracle;
-    from the first fix on without one), its per-frame series put back on every frame (NaN elsewhere)."""
-    from surveys.geometry import interpolate_poses
-
-    from .evaluation import EvaluationResult, travelled
-
-    v = np.asarray(result.valid, bool)
-    if v.all():
-        return evaluate(result.times, result.poses, truth_times, truth_poses, reference_path(store), result.localised,
-                        result.resets, max_path_distance_m=max_path_distance_m)
-    n = len(result.times)
-    dist = travelled(interpolate_poses(truth_times, truth_poses, result.times).reshape(-1, 4, 4)[:, :3, 3])
-    lat, hd, blind = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
-    if v.sum() >= 2:
-        ev = evaluate(result.times[v], result.poses[v], truth_times, truth_poses, reference_path(store),
-                      result.localised[v], result.resets[v], max_path_distance_m=max_path_distance_m)
-        lat[v], hd[v], blind[v] = ev.lateral_m, ev.heading_deg, ev.blind_m
-        metrics = ev.metrics
-    else:   # never localised: nothing to evaluate but the distance driven
-        from .evaluation import summary
-
-        metrics = {"lateral_error_m": summary([]), "heading_error_deg": summary([]), "localised_fraction": 0.0,
-                   "failures": int(result.failures), "failures_per_km": None, "blind_fraction_over_20m": None,
-                   "distance_m": float(dist[-1]) if n else 0.0, "frames_evaluated": 0}
-    return EvaluationResult(metrics, lat, hd, blind, dist)
-
-
-def _no_oracle_metrics(result: ReplayResult, ev, truth_times, truth_poses) -> dict:
-    """``oracle``, ``oracle_reads``, ``first_fix_m``, ``relocalisations``, ``false_fixes``, ``relocalise_m``.
-
-    Distances are along the truth (``ev.distance_m``, from the first frame); a false fix is an accepted
-    localisation whose estimate is more than :data:`FALSE_FIX_M` from the truth (relative to the map
-    where the map records its places' truth, so the map's own georeferencing error does not count).
-    """
-    from surveys.geometry import interpolate_poses
-
-    from .evaluation import summary
-
-    s = np.asarray(ev.distance_m, float)
-
-    def at(t):
-        return float(np.interp(t, result.times, s)) if len(s) else 0.0
-
-    first = None
-    if result.oracle == "ins":
-        first = 0.0
-    elif result.first_fix_time is not None:
-        first = at(result.first_fix_time) - (float(s[0]) if len(s) else 0.0)
-    loc = np.asarray(result.localised, bool) & np.asarray(result.valid, bool)
-    false = 0
-    if loc.any():
-        truth = interpolate_poses(truth_times, truth_poses, result.times[loc]).reshape(-1, 4, 4)
-        err = np.linalg.norm(result.poses[loc][:, :2, 3] - truth[:, :2, 3], axis=1)
-        false = int((err > FALSE_FIX_M).sum())
-    found = [at(b) - at(a) for a, b in result.relocalisations]
-    rel = summary(found)
-    return {"oracle": result.oracle, "oracle_reads": int(result.oracle_reads), "first_fix_m": first,
-            "relocalisations": len(found), "false_fixes": false,
-            "relocalise_m": {"median": rel["median"], "max": float(max(found)) if found else None}}
-
-
-def _fmt(v: float) -> str:
-    return "nan" if not np.isfinite(v) else f"{v:.6f}"
-
-
-def write_frames_csv(path: Path, result: ReplayResult, ev) -> None:
-    lines = [",".join(FRAMES_COLUMNS)]
-    for i, t in enumerate(result.times):
-        lines.append(",".join([f"{t:.6f}", str(int(result.places[i])), str(int(result.detections[i])),
-                               str(int(result.inliers[i])), str(int(result.localised[i])),
-                               _fmt(ev.lateral_m[i]), _fmt(ev.heading_deg[i]),
-                               _fmt(result.distance_since_localisation[i])]))
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
-
-
-def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metrics: dict) -> None:
-    """``trajectory.png``: estimate vs truth vs INS on the map; lateral error over distance."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    run = result.run
-    fig, (ax, bx) = plt.subplots(2, 1, figsize=(9, 10), gridspec_kw={"height_ratios": [3, 1.4]})
-    places = np.stack([store.places[i].T_world_place for i in sorted(store.places)])
-    ax.plot(places[:, 0, 3], places[:, 1, 3], "o", ms=3, color="0.7", label="map places", zorder=1)
-    if run.truth_times is not None:
-        ax.plot(run.truth_poses[:, 0, 3], run.truth_poses[:, 1, 3], "-", color="k", lw=1.2, label="truth")
-    if run.groundtruth_times is not None:
-        ax.plot(run.groundtruth_poses[:, 0, 3], run.groundtruth_poses[:, 1, 3], "--", color="tab:orange", lw=1,
-                label="INS/GPS")
-    ax.plot(result.poses[:, 0, 3], result.poses[:, 1, 3], "-", color="tab:blue", lw=1, label="estimate")
-    loc = result.localised
-    ax.plot(result.poses[loc, 0, 3], result.poses[loc, 1, 3], ".", ms=3, color="tab:green", label="localised")
-    what = "reset" if result.oracle == "ins" else "lost"
-    if result.resets.any():
-        ax.plot(result.poses[result.resets, 0, 3], result.poses[result.resets, 1, 3], "x", color="tab:red", ms=8,
-                mew=2, label=f"{what} ({int(result.resets.sum())})")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    lat = metrics["lateral_error_m"]["median"]
-    hd = metrics["heading_error_deg"]["median"]
-    ax.set_title(f"{run.name} [{', '.join(run.conditions)}] -- {result.method}: lateral median "
-                 f"{'-' if lat is None else f'{lat:.2f} m'}, heading median {'-' if hd is None else f'{hd:.2f}°'}, "
-                 f"failures {result.failures}"
-                 + (f"\nrelative to the map: lateral median {metrics['lateral_error_map_m']['median']:.2f} m, heading "
-                    f"median {metrics['heading_error_map_deg']['median']:.2f}° (map georeference error "
-                    f"{metrics['map_georeference_error_m']['median']:.1f} m)"
-                    if metrics.get("lateral_error_map_m", {}).get("median") is not None else ""), fontsize=10)
-    ax.legend(loc="best", fontsize=8)
-    s = ev.distance_m
-    within = ev.blind_m <= 10.0
-    if len(s) > 1:
-        # shade the stretches within 10 m of a localisation (the localised_fraction definition)
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], within.astype(int), [0]])))
-        for a, b in zip(edges[::2], edges[1::2]):
-            bx.axvspan(s[a], s[min(b, len(s) - 1)], color="tab:green", alpha=0.15, lw=0)
-    bx.plot(s, ev.lateral_m, color="tab:blue", lw=1, label="lateral error")
-    tmap = map_relative_truth(store, run.truth_poses) if run.truth_times is not None else None
-    if tmap is not None:
-        from .evaluation import lateral_heading_errors
-        from surveys.geometry import interpolate_poses
-
-        tm = interpolate_poses(run.truth_times, tmap, result.times).reshape(-1, 4, 4)
-        lat_map = np.full(len(result.times), np.nan)
-        if result.valid.any():
-            lat_map[result.valid] = lateral_heading_errors(result.poses[result.valid], tm[result.valid],
-                                                           reference_path(store))[0]
-        bx.plot(s, lat_map, color="tab:purple", lw=1, label="lateral error relative to the map")
-    if run.groundtruth_times is not None and run.truth_times is not None:
-        from surveys.geometry import interpolate_poses
-        from .evaluation import lateral_heading_errors
-
-        ins = interpolate_poses(run.groundtruth_times, run.groundtruth_poses, result.times).reshape(-1, 4, 4)
-        tru = interpolate_poses(run.truth_times, run.truth_poses, result.times).reshape(-1, 4, 4)
-        ins_lat, _, _ = lateral_heading_errors(ins, tru, reference_path(store))
-        bx.plot(s, ins_lat, color="tab:orange", lw=0.8, ls="--", label="INS/GPS lateral error")
-    for sr in s[result.resets]:
-        bx.axvline(sr, color="tab:red", lw=1)
-    bx.axhline(0, color="0.5", lw=0.5)
-    if result.oracle != "ins" and result.first_fix_time is not None:
-        bx.axvline(float(np.interp(result.first_fix_time, result.times, s)), color="tab:green", lw=1, ls=":")
-    bx.set_xlabel(f"distance travelled (m)  [green: within 10 m of a localisation; red: {what}"
-                  + ("; dotted: first fix from the map" if result.oracle != "ins" else "") + "]")
-    bx.set_ylabel("lateral error (m)")
-    bx.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
-
-
-def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_m: float | None = None,
-                  figure: bool = True) -> dict:
-    """Write trajectory.tum, frames.csv, metrics.json (and trajectory.png) into ``out``; return the metrics."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    metrics, ev = compute_metrics(result, store, max_path_distance_m)
-    write_tum(out / "trajectory.tum", result.times[result.valid], result.poses[result.valid])
-    write_frames_csv(out / "frames.csv", result, ev)
-    tmp = out / "metrics.json.tmp"
-    tmp.write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
-    tmp.replace(out / "metrics.json")
-    if figure:
-        plot_trajectory(out / "trajectory.png", result, store, ev, metrics)
-    return metrics
-
-
 def localise(map_root, run_root, out, method: str = "signatures", every: int = 4, realtime: bool = False,
              speed: float = 1.0, config: dict | None = None, progress: bool = True, figure: bool = True,
              oracle: str | None = None) -> dict:
@@ -771,7 +481,7 @@ def localise(map_root, run_root, out, method: str = "signatures", every: int = 4
     import dataclasses
 
     store = MapStore.open(map_root)
-    cfg = {**default_config, **(config or {})}
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
     oracle = oracle or cfg["oracle"]
     blind = oracle == "none"
     run = read_run(run_root, skip=("groundtruth", "gps", "truth") if blind else ())

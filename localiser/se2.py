@@ -1,4 +1,4 @@
-"""Snapping an SE(3) vehicle pose to SE(2) on the local road plane (paper 003, §3.3.3, Fig. 7).
+"""Snapping an SE(3) vehicle pose to SE(2) on the local road plane (McManus et al. 2015, §3.3.3, Fig. 7).
 
 The map, the odometry, the solver and the pose graph all work in SE(3); left alone, a
 monocular far-field localiser lets the height drift slowly.  Because a car drives on a road, the

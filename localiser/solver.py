@@ -1,4 +1,4 @@
-"""Pose of the vehicle relative to a place from 2D-3D correspondences and a motion prior (paper 003, eq. 10).
+"""Pose of the vehicle relative to a place from 2D-3D correspondences and a motion prior (McManus et al. 2015, eq. 10).
 
 The solver minimises
 
@@ -35,24 +35,24 @@ solution) and the checks: a compact numpy LM on the 6-dof tangent (default: ~2.5
 detections, no allocations beyond a few (N,2,6) arrays) and a GTSAM factor graph
 (``GenericProjectionFactorCal3_S2`` with landmarks as variables held by their map priors, Huber noise
 models, ``LevenbergMarquardtOptimizer``; ~11 ms), kept as an independent reference that the tests
-compare against, and for the benchmark (``python -m localiser.solver``).  The same code serves point features (issue 6) via
+compare against, and for the benchmark (``scenesig bench solver``).  The same code serves point features via
 :func:`solve_pnp_prior`, which initialises with OpenCV's PnP + RANSAC.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import time
 from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
 
-from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, point_pose_jacobian, rot_z
+from surveys.validation import check_array
+from surveys.settings import merge_settings
+from surveys.geometry import Camera, invert, point_pose_jacobian
 
 __all__ = ["default_config", "SolveResult", "LocalisationConstraint", "solve", "solve_pnp_prior",
-           "pose_exp", "pose_log", "benchmark", "synthetic_problem", "default_pnp_config"]
+           "pose_exp", "pose_log", "default_pnp_config"]
 
 default_config = {
     "huber_k": 1.5,             # Huber threshold, in sigmas of a detection's Mahalanobis norm
@@ -170,9 +170,9 @@ class _Problem:
         self.cfg = cfg
         uv = np.asarray(uv, dtype=float).reshape(-1, 2)
         n = len(uv)
-        self.landmarks = _check_array(landmarks, (n, 3), "landmarks")
-        self.R = _check_array(R, (n, 2, 2), "R")
-        self.landmark_cov = None if landmark_cov is None else _check_array(landmark_cov, (n, 3, 3), "landmark_cov")
+        self.landmarks = check_array(landmarks, (n, 3), "landmarks")
+        self.R = check_array(R, (n, 2, 2), "R")
+        self.landmark_cov = None if landmark_cov is None else check_array(landmark_cov, (n, 3, 3), "landmark_cov")
         if not np.all(np.isfinite(uv)):
             raise ValueError("detections uv contain non-finite values")
         if any(camera.distortion):
@@ -183,12 +183,12 @@ class _Problem:
             camera = dataclasses.replace(camera, distortion=())
         self.uv = uv
         self.camera = camera
-        self.T_vehicle_camera = _check_array(T_vehicle_camera, (4, 4), "T_vehicle_camera")
+        self.T_vehicle_camera = check_array(T_vehicle_camera, (4, 4), "T_vehicle_camera")
         T_cv = invert(self.T_vehicle_camera)
         self.R_cv, self.t_cv = T_cv[:3, :3], T_cv[:3, 3]
-        self.T_prior = None if T_prior is None else _check_array(T_prior, (4, 4), "T_place_vehicle_prior")
+        self.T_prior = None if T_prior is None else check_array(T_prior, (4, 4), "T_place_vehicle_prior")
         if T_prior is not None:
-            P = _check_array(P_prior, (6, 6), "P_prior")
+            P = check_array(P_prior, (6, 6), "P_prior")
             try:
                 self.P_inv = np.linalg.inv(P)
                 np.linalg.cholesky(self.P_inv)
@@ -284,15 +284,6 @@ class _Problem:
         return L, L_det, b, b_det
 
 
-def _check_array(a, shape, name) -> np.ndarray:
-    a = np.asarray(a, dtype=float)
-    if a.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains non-finite values")
-    return a
-
-
 # ---------------------------------------------------------------------------- numpy back end
 def _lm_numpy(prob: _Problem, T0: np.ndarray, idx: np.ndarray, W: np.ndarray):
     cfg = prob.cfg
@@ -366,13 +357,7 @@ def _lm_gtsam(prob: _Problem, T0: np.ndarray, idx: np.ndarray, W: np.ndarray):
 
 # ------------------------------------------------------------------------------------ driver
 def _merge(config: dict | None, defaults: dict) -> dict:
-    cfg = dict(defaults)
-    if config:
-        unknown = set(config) - set(defaults)
-        if unknown:
-            raise ValueError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(defaults)}")
-        cfg.update(config)
-    return cfg
+    return merge_settings(defaults, config, "solver")
 
 
 def _solve(prob: _Problem, T_init: np.ndarray, idx0: np.ndarray, t_start: float, extra=None) -> SolveResult:
@@ -542,77 +527,3 @@ def solve_pnp_prior(uv, points, camera: Camera, T_vehicle_camera, T_place_vehicl
     T_cam_place[:3, 3] = tvec.ravel()
     T_init = invert(prob.T_vehicle_camera @ T_cam_place)
     return _solve(prob, T_init, inl.ravel(), t0, extra)
-
-
-# --------------------------------------------------------------------------------- benchmark
-def synthetic_problem(n_detections=50, outlier_fraction=0.2, seed=0, pixel_sigma=1.0, landmark_sigma=0.3,
-                      prior_sigmas=(0.02, 0.02, 0.05, 1.0, 1.0, 0.3)):
-    """A random but repeatable place with far-field landmarks, detections, outliers and a perturbed prior.
-
-    Returns a dict with the inputs of :func:`solve` (keys ``uv, R, landmarks, landmark_cov,
-    T_place_vehicle_prior, P_prior, camera, T_vehicle_camera``) plus ``T_true`` and ``outliers``.
-    Used by the tests and the benchmark.
-    """
-    rng = np.random.default_rng(seed)
-    camera = Camera(500.0, 500.0, 319.5, 239.5, 640, 480)
-    T_vc = make_pose(CAMERA_FROM_VEHICLE_AXES, [1.5, 0.0, 1.4])
-    T_true = make_pose(rot_z(0.05), [3.0, -0.8, 0.1])
-    # Landmarks 8-60 m ahead of the true camera, inside the image.
-    depth = rng.uniform(8.0, 60.0, n_detections)
-    uv_true = np.column_stack([rng.uniform(20, 620, n_detections), rng.uniform(20, 460, n_detections)])
-    P_c = camera.backproject(uv_true, depth)
-    T_pc = T_true @ T_vc
-    landmarks_true = P_c @ T_pc[:3, :3].T + T_pc[:3, 3]
-    landmark_cov = np.tile(np.eye(3) * landmark_sigma ** 2, (n_detections, 1, 1))
-    landmarks = landmarks_true + rng.normal(0, landmark_sigma, landmarks_true.shape)
-    R = np.tile(np.eye(2) * pixel_sigma ** 2, (n_detections, 1, 1))
-    uv = uv_true + rng.normal(0, pixel_sigma, uv_true.shape)
-    n_out = int(round(outlier_fraction * n_detections))
-    outliers = np.zeros(n_detections, bool)
-    out_idx = rng.choice(n_detections, n_out, replace=False)
-    outliers[out_idx] = True
-    uv[out_idx] = np.column_stack([rng.uniform(0, 640, n_out), rng.uniform(0, 480, n_out)])
-    sig = np.asarray(prior_sigmas, float)
-    P_prior = np.diag(sig ** 2)
-    T_prior = T_true @ pose_exp(rng.normal(0, 1, 6) * sig)
-    return {"uv": uv, "R": R, "landmarks": landmarks, "landmark_cov": landmark_cov,
-            "T_place_vehicle_prior": T_prior, "P_prior": P_prior, "camera": camera,
-            "T_vehicle_camera": T_vc, "T_true": T_true, "outliers": outliers}
-
-
-def benchmark(n_detections=50, repeats=50, outlier_fraction=0.2, backends=("numpy", "gtsam")) -> dict:
-    """Median ms per solve per back end, and the pose error, on synthetic problems (generated first)."""
-    problems = [synthetic_problem(n_detections, outlier_fraction, seed=s) for s in range(repeats)]
-    out = {"n_detections": n_detections, "outlier_fraction": outlier_fraction, "repeats": repeats}
-    for backend in backends:
-        cfg = {"backend": backend}
-        solve(**{k: v for k, v in problems[0].items() if k not in ("T_true", "outliers")}, config=cfg)  # warm-up
-        ms, err_t, err_r, ok = [], [], [], 0
-        for p in problems:
-            res = solve(**{k: v for k, v in p.items() if k not in ("T_true", "outliers")}, config=cfg)
-            ms.append(res.ms)
-            ok += res.ok
-            d = invert(p["T_true"]) @ res.T_place_vehicle
-            err_t.append(np.linalg.norm(d[:3, 3]))
-            err_r.append(np.degrees(np.linalg.norm(pose_log(d)[:3])))
-        out[backend] = {"ms_per_solve_median": float(np.median(ms)), "ms_per_solve_p95": float(np.percentile(ms, 95)),
-                        "ok_fraction": ok / repeats, "translation_error_m_median": float(np.median(err_t)),
-                        "rotation_error_deg_median": float(np.median(err_r))}
-    return out
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m localiser.solver",
-                                 description="Benchmark the eq. 10 solver back ends on synthetic problems.")
-    ap.add_argument("--detections", type=int, default=50)
-    ap.add_argument("--repeats", type=int, default=50)
-    ap.add_argument("--outliers", type=float, default=0.2, help="outlier fraction")
-    ap.add_argument("--backends", default="numpy,gtsam")
-    args = ap.parse_args(argv)
-    print(json.dumps(benchmark(args.detections, args.repeats, args.outliers, tuple(args.backends.split(","))),
-                     indent=2))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,4 +1,4 @@
-"""Map building (paper 003 §3.1-3.2.1): survey runs -> places -> scene-signature banks -> landmarks -> map.
+"""Map building (McManus et al. 2015, §3.1-3.2.1): survey runs -> places -> scene-signature banks -> landmarks -> map.
 
 For each place (every 10 m along the reference run):
 
@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from surveys.settings import merge_settings
 from surveys.geometry import invert
 from surveys.run import SurveyRun
 from signatures import globaldesc
@@ -51,7 +52,8 @@ from mapping import georef as georef_mod
 from mapping import places as places_mod
 from mapping.pointmap import build_point_features
 from mapping.refine import Detections, REASONS, refine_landmarks
-from mapping.store import MapWriter, PlaceData, atomic_write_bytes, decode_place, encode_keyframe, place_file_name
+from mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
+from surveys.io import atomic_write_bytes
 
 __all__ = ["default_config", "build_map", "build_place", "load_config"]
 
@@ -74,12 +76,9 @@ default_config = {
 
 
 def _merge(config):
-    cfg = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
-    for k, v in (config or {}).items():
-        if k not in cfg:
-            raise ValueError(f"unknown build option {k!r}; known: {sorted(cfg)}")
-        cfg[k] = {**cfg[k], **v} if isinstance(cfg[k], dict) else v
-    return cfg
+    # every sub-dict is passed on whole to its stage, which checks it
+    return merge_settings(default_config, config, "build",
+                          open=tuple(k for k, v in default_config.items() if isinstance(v, dict)))
 
 
 def _subsample(window: np.ndarray, centre: int, n: int, positions: np.ndarray | None = None) -> np.ndarray:
@@ -121,10 +120,8 @@ def _true_depths(run: SurveyRun, frame: int, image: np.ndarray, boxes: np.ndarra
     """
     import cv2
 
-    try:
-        from surveys.sim.truth import depth_image
-    except ImportError:
-        return None
+    from surveys.sim.truth import depth_image
+
     depth = depth_image(run, frame)
     if depth is None:
         return None
@@ -258,7 +255,7 @@ def _build_place(place, views, negatives, config):
         bank_arrays=kept_bank.to_arrays(), landmarks=landmarks, covariances=covs,
         classifier_ids=np.arange(len(keep), dtype=np.int64),
         keyframe=encode_keyframe(images[0], width=cfg["keyframe_width"]),
-        # the point-feature baseline's keyframe features and 3D points (issue 6) live beside the bank
+        # the point-feature baseline's keyframe features and 3D points live beside the bank
         points=build_point_features(ref, camera, T_vc, cfg["points"]),
         meta={"reference_run": ref.run.name, "reference_frame": int(ref.frame),
               "training_runs": [v.run.name for v in views], "detections_at_reference": [[float(v) if np.isfinite(v) else None for v in b] for b in boxes],

@@ -1,7 +1,7 @@
 """Mapping geometry: window poses, landmark reprojection, jacobians and the ray-depth parametrisation.
 
 Everything here is built on :mod:`surveys.geometry` (the project's one camera and SE(3) implementation);
-this module only adds what landmark refinement (paper 003, section 3.2.1) needs, vectorised over many
+this module only adds what landmark refinement (McManus et al. 2015, §3.2.1) needs, vectorised over many
 landmarks and window frames at once.
 
 Frames (see ``surveys.geometry`` for the conventions):

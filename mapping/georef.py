@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from surveys.settings import merge_settings
 from surveys.geometry import (Camera, exp_so3, interpolate_poses, invert, make_pose, point_pose_jacobian, rot_z,
                               yaw_of)
 from mapping.geometry import ideal_camera, ideal_pixels
@@ -81,11 +82,7 @@ default_config = {
 
 
 def _merge(config: dict | None) -> dict:
-    cfg = dict(default_config)
-    for k, v in (config or {}).items():
-        if k not in cfg:
-            raise ValueError(f"unknown georeference option {k!r}; known: {sorted(cfg)}")
-        cfg[k] = v
+    cfg = merge_settings(default_config, config, "georeference")
     if cfg["method"] not in METHODS:
         raise ValueError(f"georeference method must be one of {METHODS}, got {cfg['method']!r}")
     return cfg

@@ -1,4 +1,4 @@
-"""Places every 10 m along the reference run, and each place's training set (paper §3.2, §4.1).
+"""Places every 10 m along the reference run, and each place's training set (McManus et al. 2015, §3.2, §4.1).
 
 A *place* ``π_p`` is a pose on the reference ("map") run's INS trajectory; places are spaced
 ``spacing`` metres apart in distance travelled.  Its frame is the reference vehicle pose there,
@@ -16,13 +16,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from surveys.settings import merge_settings
 from surveys.geometry import interpolate_poses, invert, yaw_of
 from surveys.run import SurveyRun
 
 __all__ = ["Place", "TrainingView", "define_places", "training_views", "default_config", "arc_length"]
 
 default_config = {
-    "spacing_m": 10.0,          # paper §4.1
+    "spacing_m": 10.0,          # McManus et al. 2015, §4.1
     "window_m": 10.0,           # refinement window: ±10 m (paper footnote 5)
     "max_position_error_m": 8.0,  # a run further than this from a place (INS) does not see it
     "max_heading_error_deg": 30.0,
@@ -77,7 +78,7 @@ def _frame_poses(run: SurveyRun) -> np.ndarray:
 
 def define_places(reference: SurveyRun, config: dict | None = None) -> list[Place]:
     """Places every ``spacing_m`` along the reference run's INS trajectory (first one after half a spacing)."""
-    cfg = {**default_config, **(config or {})}
+    cfg = merge_settings(default_config, config, "places")
     poses = _frame_poses(reference)
     s = arc_length(poses[:, :3, 3])
     spacing = cfg["spacing_m"]
@@ -95,7 +96,7 @@ def define_places(reference: SurveyRun, config: dict | None = None) -> list[Plac
 
 def training_views(place: Place, runs: list[SurveyRun], config: dict | None = None) -> list[TrainingView]:
     """For each run that passes the place, its nearest frame (position and heading) and ±window frames."""
-    cfg = {**default_config, **(config or {})}
+    cfg = merge_settings(default_config, config, "places")
     views = []
     p_xy = place.T_world_place[:2, 3]
     p_yaw = yaw_of(place.T_world_place)

@@ -1,4 +1,4 @@
-"""Point-feature map of a place (the ORB / SIFT baselines of paper 003 §4): keyframe features with 3D points.
+"""Point-feature map of a place (the ORB / SIFT baselines of McManus et al. 2015, §4): keyframe features with 3D points.
 
 The point-feature localiser the paper compares against matches the live image to a *map image* and
 solves for the pose from the 2D-3D correspondences.  Its map, per place:
@@ -37,19 +37,17 @@ Everything is in the place frame (the vehicle frame of the keyframe), like the s
 :func:`add_to_map` adds the point features to an existing map built without them (every place file is
 rewritten atomically with its new checksum; the banks are untouched).
 
-``python -m mapping.pointmap RUN --frame I`` builds one keyframe's point map from a survey run and prints
+``scenesig bench pointmap RUN --frame I`` builds one keyframe's point map from a survey run and prints
 its statistics (and, for simulated runs with ``truth`` depth, the depth error);
-``python -m mapping.pointmap --add MAP --reference RUN`` adds point features to a map.
+``scenesig map add-points MAP --reference RUN`` adds point features to a map.
 """
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 import time
 
 import numpy as np
 
+from surveys.settings import merge_settings
 from surveys.geometry import Camera, invert
 from signatures.pointfeatures import PointFeatures, extract, match
 from signatures.pointfeatures import default_config as features_default
@@ -81,11 +79,7 @@ default_config = {
 
 
 def _merge(config: dict | None) -> dict:
-    cfg = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
-    for k, v in (config or {}).items():
-        if k not in cfg:
-            raise ValueError(f"unknown point-map option {k!r}; known: {sorted(cfg)}")
-        cfg[k] = {**cfg[k], **v} if isinstance(cfg[k], dict) else v
+    cfg = merge_settings(default_config, config, "point-map", open=("features",))
     for kind in cfg["kinds"]:
         if kind not in KINDS:
             raise ValueError(f"unknown point-feature kind {kind!r}; choose from {KINDS}")
@@ -522,57 +516,3 @@ def add_to_map(map_root, reference, config: dict | None = None, overwrite: bool 
     sizes = [(store.root / m.file).stat().st_size for m in store.places.values()]
     return {"places": updated, "seconds": time.perf_counter() - t0, "bytes_per_place_mean": float(np.mean(sizes)),
             **{f"{k}_kept_mean": float(np.mean(v)) for k, v in kept.items()}}
-
-
-def main(argv=None) -> int:
-    from mapping.places import TrainingView
-    from surveys.geometry import interpolate_poses
-    from surveys.run import read_run
-
-    ap = argparse.ArgumentParser(prog="python -m mapping.pointmap",
-                                 description="Build the ORB/SIFT point map of one keyframe of a survey run, or add "
-                                             "point features to a map (--add MAP --reference RUN).")
-    ap.add_argument("run", nargs="?")
-    ap.add_argument("--frame", type=int, help="keyframe index")
-    ap.add_argument("--window-m", type=float, default=10.0)
-    ap.add_argument("--add", metavar="MAP", help="add point features to every place of this map")
-    ap.add_argument("--reference", metavar="RUN", help="with --add: the map's reference run")
-    args = ap.parse_args(argv)
-    if args.add:
-        if not args.reference:
-            ap.error("--add needs --reference RUN")
-        print(json.dumps(add_to_map(args.add, read_run(args.reference)), indent=1))
-        return 0
-    if args.run is None or args.frame is None:
-        ap.error("give RUN --frame I, or --add MAP --reference RUN")
-    run = read_run(args.run)
-    if not 0 <= args.frame < len(run):
-        ap.error(f"--frame must be in 0..{len(run) - 1}")
-    odo = interpolate_poses(run.odometry_times, run.odometry_poses, run.frame_times)
-    s = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(odo[:, :3, 3], axis=0), axis=1))])
-    win = np.flatnonzero(np.abs(s - s[args.frame]) <= args.window_m)
-    view = TrainingView(run, args.frame, win, invert(odo[args.frame]) @ odo[win], 0.0)
-    t0 = time.perf_counter()
-    points, stats = build_point_features(view, run.camera, run.T_vehicle_camera, return_stats=True)
-    out = {"seconds": time.perf_counter() - t0, "stats": stats,
-           "bytes": int(sum(v.nbytes for v in points.values()))}
-    try:
-        from surveys.sim.truth import depth_image  # simulated runs only
-        depth = depth_image(run, args.frame)
-    except ImportError:
-        depth = None
-    if depth is not None:
-        T_cv = invert(run.T_vehicle_camera)
-        for kind in stats:
-            xyz, kp = points[f"{kind}_xyz"].astype(float), points[f"{kind}_kp"]
-            z = xyz @ T_cv[2, :3] + T_cv[2, 3]
-            true = depth[np.clip(np.round(kp[:, 1]).astype(int), 0, depth.shape[0] - 1),
-                         np.clip(np.round(kp[:, 0]).astype(int), 0, depth.shape[1] - 1)]
-            ok = np.isfinite(true)
-            out[f"{kind}_depth_rel_error_median"] = float(np.median(np.abs(z[ok] - true[ok]) / true[ok])) if ok.any() else None
-    print(json.dumps(out, indent=1))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,4 +1,4 @@
-"""Landmark refinement for scene signatures (paper 003, section 3.2.1, eqs. 1-9).
+"""Landmark refinement for scene signatures (McManus et al. 2015, §3.2.1, eqs. 1-9).
 
 Every classifier that survived mining is fired over a window of frames around its place (about +-10 m).
 This module turns those detections into a motion-consistent 3D landmark, or rejects the classifier:
@@ -17,26 +17,25 @@ This module turns those detections into a motion-consistent 3D landmark, or reje
 4. **checks** -- reject landmarks behind the camera, at the depth bound or with a poor fit, and keep the
    point in the place frame with its covariance ``(H^T W R^-1 H)^-1``.
 
-``python -m mapping.refine`` runs the synthetic benchmark (accuracy and speed) and prints a JSON report.
+``scenesig bench refine`` runs the synthetic benchmark (accuracy and speed) and prints a JSON report.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from surveys.geometry import Camera, CAMERA_FROM_VEHICLE_AXES, make_pose, rot_z, invert
+from surveys.validation import check_covariance
+from surveys.settings import merge_settings
+from surveys.geometry import Camera, invert
 from mapping.geometry import (
     anchor_rays, camera_depth, camera_poses, derotate_pixels, ideal_camera, ideal_pixels, ray_points,
     reproject, reproject_jacobian,
 )
 
 __all__ = ["default_config", "REASONS", "Detections", "RefineResult", "refine_landmarks",
-           "temporal_check", "depth_sweep", "lm_huber", "huber", "synthetic_window", "benchmark"]
+           "temporal_check", "depth_sweep", "lm_huber", "huber"]
 
 default_config = {
     # Base covariance Q (px^2) of the detector's search resolution at scale 1 (eqs. 4-5).
@@ -555,10 +554,7 @@ def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_v
     -------
     RefineResult
     """
-    cfg = {**default_config, **(config or {})}
-    unknown = set(config or {}) - set(default_config)
-    if unknown:
-        raise ValueError(f"unknown refinement options: {sorted(unknown)}")
+    cfg = merge_settings(default_config, config, "refinement")
     if not isinstance(detections, Detections):
         raise TypeError("detections must be a mapping.refine.Detections")
     N, F = detections.shape
@@ -566,9 +562,7 @@ def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_v
     if T_wp.shape != (F, 4, 4):
         raise ValueError(f"T_window_place must be (F, 4, 4) = ({F}, 4, 4), got {T_wp.shape}")
     T_vc = np.asarray(T_vehicle_camera, dtype=float)
-    Qm = np.asarray(cfg["Q"] if Q is None else Q, dtype=float)
-    if Qm.shape != (2, 2) or not np.all(np.linalg.eigvalsh(Qm) > 0):
-        raise ValueError(f"Q must be a positive definite 2x2 covariance, got {Qm.tolist()}")
+    Qm = check_covariance(cfg["Q"] if Q is None else Q, 2, "Q")
     Qinv = np.linalg.inv(Qm)
     if reference is None:
         reference = int(np.argmin(np.linalg.norm(invert(T_wp)[:, :3, 3], axis=1)))
@@ -722,116 +716,3 @@ def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_v
                         inliers=inliers, fit_inliers=fit_inliers, inlier_ratio=ratio, rms_px=rms_px,
                         rms_mahal=rms_mahal, iterations=iterations, converged=converged, anchor=anchor,
                         config=cfg, censored=censored)
-
-
-# --------------------------------------------------------------------------------------------------------
-# synthetic check (used by the tests and ``python -m mapping.refine``)
-# --------------------------------------------------------------------------------------------------------
-def synthetic_window(n_landmarks=300, n_frames=21, spacing=1.0, path="straight", radius=60.0,
-                     depth_range=(5.0, 90.0), sigma_px=1.0, outlier_rate=0.05, dropout_rate=0.1,
-                     n_random=0, seed=0, camera: Camera | None = None):
-    """A window of frames along a straight or curved path, with landmarks at known depths.
-
-    Detection noise is drawn from the covariance the refinement assumes, ``R = a/(lambda s) Q`` with
-    ``Q = sigma_px^2 I``, ``a = 1``, ``lambda`` in [0.5, 1] and ``s`` in {1, 0.5}; a fraction
-    ``outlier_rate`` of detections are replaced by uniform random pixels.  The last ``n_random``
-    classifiers fire at random pixels in every frame (what the temporal check must reject).
-
-    Returns
-    -------
-    dict
-        ``detections``, ``T_window_place``, ``camera``, ``T_vehicle_camera``, ``reference``, ``Q``,
-        ``points`` (N, 3) true landmarks in the place frame (NaN for random classifiers), ``depth`` (N,)
-        true place-camera depths, ``random`` (N,) bool.
-    """
-    rng = np.random.default_rng(seed)
-    cam = camera or Camera(500.0, 500.0, 319.5, 239.5, 640, 480)
-    T_vc = make_pose(CAMERA_FROM_VEHICLE_AXES, [1.5, 0.0, 1.5])
-    ref = n_frames // 2
-    arc = (np.arange(n_frames) - ref) * spacing
-    if path == "straight":
-        T_place_window = np.stack([make_pose(None, [x, 0.0, 0.0]) for x in arc])
-    elif path == "curved":
-        yaw = arc / radius
-        T_place_window = np.stack([make_pose(rot_z(th), [radius * np.sin(th), radius * (1 - np.cos(th)), 0.0])
-                                   for th in yaw])
-    else:
-        raise ValueError(f"path must be 'straight' or 'curved', got {path!r}")
-    T_wp = invert(T_place_window)
-    n_true = n_landmarks - n_random
-    depth = rng.uniform(*depth_range, n_true)
-    uv0 = np.column_stack([rng.uniform(40, cam.width - 40, n_true), rng.uniform(40, cam.height - 40, n_true)])
-    P_place = (np.concatenate([cam.backproject(uv0, depth), np.ones((n_true, 1))], axis=1) @ T_vc.T)[:, :3]
-    T_cp = camera_poses(T_wp, T_vc)
-    uv, zc = reproject(T_cp, P_place, cam)
-    visible = (zc > 0.5) & cam.in_image(uv.reshape(-1, 2)).reshape(zc.shape)
-    N, F = n_landmarks, n_frames
-    prob = rng.uniform(0.5, 1.0, (N, F))
-    scale = rng.choice([1.0, 0.5], size=(N, F))
-    sig = sigma_px / np.sqrt(prob * scale)
-    det = np.full((N, F, 2), np.nan)
-    det[:n_true] = np.where(visible[..., None], uv + rng.standard_normal((n_true, F, 2)) * sig[:n_true, :, None],
-                            np.nan)
-    det[n_true:] = np.stack([rng.uniform(0, cam.width, (n_random, F)), rng.uniform(0, cam.height, (n_random, F))],
-                            axis=2)
-    det[rng.random((N, F)) < dropout_rate] = np.nan
-    det[:, ref][:n_true] = np.where(visible[:, ref, None], uv[:, ref] + rng.standard_normal((n_true, 2)) *
-                                    sig[:n_true, ref, None], np.nan)  # the classifier was mined here
-    out = (rng.random((N, F)) < outlier_rate) & np.isfinite(det).all(axis=2)
-    out[:, ref] = False
-    det[out] = np.stack([rng.uniform(0, cam.width, out.sum()), rng.uniform(0, cam.height, out.sum())], axis=1)
-    points = np.full((N, 3), np.nan)
-    points[:n_true] = P_place
-    true_depth = np.full(N, np.nan)
-    true_depth[:n_true] = depth
-    return {"detections": Detections(det, scale, prob, np.ones(N)), "T_window_place": T_wp, "camera": cam,
-            "T_vehicle_camera": T_vc, "reference": ref, "Q": (sigma_px ** 2) * np.eye(2), "points": points,
-            "depth": true_depth, "random": np.arange(N) >= n_true}
-
-
-def benchmark(n_landmarks=300, n_frames=21, path="straight", sigma_px=1.0, n_random=30, seed=0,
-              repeats=3, config=None) -> dict:
-    """Accuracy and speed of :func:`refine_landmarks` on :func:`synthetic_window` (one place)."""
-    w = synthetic_window(n_landmarks=n_landmarks, n_frames=n_frames, path=path, sigma_px=sigma_px,
-                         n_random=n_random, seed=seed)
-    args = (w["detections"], w["T_window_place"], w["camera"], w["T_vehicle_camera"], w["reference"], w["Q"])
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        res = refine_landmarks(*args, config=config)
-        times.append(time.perf_counter() - t0)
-    true = ~w["random"]
-    kept = res.kept & true
-    rel = np.abs(res.depth[kept] - w["depth"][kept]) / w["depth"][kept]
-    err = res.points[kept] - w["points"][kept]
-    m2 = np.einsum("ni,nij,nj->n", err, np.linalg.inv(res.covariances[kept]), err)
-    return {
-        "landmarks": int(true.sum()), "random_classifiers": int(w["random"].sum()), "frames": n_frames,
-        "path": path, "sigma_px": sigma_px,
-        "kept_true": int(kept.sum()),
-        "rejected_true": {r: int(((res.reason == r) & true).sum()) for r in REASONS},
-        "random_rejected": {r: int(((res.reason == r) & w["random"]).sum()) for r in REASONS},
-        "random_kept": int((res.kept & w["random"]).sum()),
-        "depth_rel_error_median": float(np.median(rel)) if rel.size else None,
-        "depth_rel_error_p90": float(np.percentile(rel, 90)) if rel.size else None,
-        "within_95pct_ellipsoid": float(np.mean(m2 <= 7.815)) if rel.size else None,
-        "seconds_median": float(np.median(times)),
-    }
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m mapping.refine",
-                                 description="Synthetic accuracy/speed benchmark of landmark refinement.")
-    ap.add_argument("--landmarks", type=int, default=300)
-    ap.add_argument("--frames", type=int, default=21)
-    ap.add_argument("--random", type=int, default=30, help="classifiers firing at random (of --landmarks)")
-    ap.add_argument("--sigma", type=float, default=1.0, help="base pixel noise (px)")
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
-    for path in ("straight", "curved"):
-        print(json.dumps(benchmark(args.landmarks, args.frames, path, args.sigma, args.random, args.seed)))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

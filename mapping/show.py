@@ -15,6 +15,7 @@ from surveys.errors import DataError
 from surveys.geometry import invert, transform
 from signatures.bank import Bank
 from mapping.store import MapStore
+from surveys.io import atomic_path
 
 __all__ = ["place_figure", "heatmap", "show_map"]
 
@@ -65,7 +66,8 @@ def place_figure(store: MapStore, index: int, path) -> Path:
     ax.set_title(f"place {index}: {len(boxes)} scene signatures (colour: landmark depth)")
     fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=cmap), ax=ax, label="depth (m)", fraction=0.03)
     path = Path(path)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -89,7 +91,8 @@ def heatmap(store: MapStore, indices, path, cell: int = 8) -> Path:
     ax.set_title(f"signature coverage over {len(indices)} places")
     fig.colorbar(im, ax=ax, label="signatures per place covering the cell", fraction=0.03)
     path = Path(path)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -113,7 +116,8 @@ def overview(store: MapStore, path) -> Path:
     ax.set_title("places (colour: scene signatures)")
     fig.colorbar(sc, ax=ax, label="signatures")
     path = Path(path)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return path
 

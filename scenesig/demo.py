@@ -35,6 +35,8 @@ import sys
 import time
 from pathlib import Path
 
+from surveys.settings import merge_settings
+
 __all__ = ["default_config", "run_demo"]
 
 default_config = {
@@ -120,16 +122,15 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     from joblib import Parallel, delayed
 
     from mapping.build import build_map
-    from mapping.store import MapStore, atomic_write_bytes
+    from mapping.store import MapStore
+    from surveys.io import atomic_write_bytes
     from surveys.run import read_run
 
-    from .experiments import matching_experiment, write_matching
+    from .experiments import matching_experiment
+    from .plots import write_matching
     from .report import build_report
 
-    cfg = {**default_config, **(config or {})}
-    unknown = set(config or {}) - set(default_config)
-    if unknown:
-        raise ValueError(f"unknown demo option(s) {sorted(unknown)}; known: {sorted(default_config)}")
+    cfg = merge_settings(default_config, config, "demo")
     every = round(float(cfg["camera_hz"]) / float(cfg["detector_hz"]))
     if every < 1 or abs(every * float(cfg["detector_hz"]) - float(cfg["camera_hz"])) > 1e-6:
         raise ValueError(f"camera rate {cfg['camera_hz']} Hz must be a multiple of the detector rate "

@@ -7,11 +7,11 @@ folder).  The page (``DIR/index.html``) has
   failures per km, share of distance more than 20 m blind;
 * failures per km of each point-feature method relative to scene signatures, per run (the paper's
   finding, in one number per run);
-* the localisation figures of §4.3-4.4 (:func:`scenesig.experiments.localisation_figures`): per run,
+* the localisation figures of §4.3-4.4 (:func:`scenesig.plots.localisation_figures`): per run,
   lateral / heading errors against truth for every method and the raw INS, speed, matches per frame with
   the localised frames marked; the dead-reckoning plot (Fig. 25);
 * the matching experiment's figures (Figs 11-14) when a ``matching.json`` is found below RESULTS
-  (written by :func:`scenesig.experiments.write_matching`).
+  (written by :func:`scenesig.plots.write_matching`).
 
 Figures are PNG files in ``DIR/figures`` referenced by relative links; the page has no script, no
 external style sheet and no web font, so it opens anywhere, offline.
@@ -31,9 +31,10 @@ from pathlib import Path
 import numpy as np
 
 from surveys.errors import DataError
+from surveys.io import atomic_write_text
 
-from .experiments import (find_localise_outputs, find_runs, localisation_figures, read_localise_output,
-                          summary_rows)
+from .experiments import find_localise_outputs, find_runs, read_localise_output, summary_rows
+from .plots import localisation_figures
 
 __all__ = ["build_report", "find_matching"]
 
@@ -257,10 +258,8 @@ def build_report(results, out, runs=None, title: str = "scenesig localisation re
     parts.append(f"<p class='meta'>Report built in {time.perf_counter() - t0:.1f} s by scenesig.</p></body></html>")
     out.mkdir(parents=True, exist_ok=True)
     index = out / "index.html"
-    tmp = out / "index.html.tmp"
-    tmp.write_text("\n".join(parts), encoding="utf-8")
-    tmp.replace(index)
-    (out / "report_summary.json").write_text(json.dumps({"rows": rows}, indent=1, allow_nan=False, default=_json_default) + "\n")
+    atomic_write_text(index, "\n".join(parts))
+    atomic_write_text(out / "report_summary.json", json.dumps({"rows": rows}, indent=1, allow_nan=False, default=_json_default) + "\n")
     return index
 
 

@@ -1,6 +1,6 @@
 """A bank of scene-signature classifiers for one place, and one-pass detection of the whole bank.
 
-A :class:`Classifier` is a linear filter over a window of FHOG cells (paper §3.2: one SVM per
+A :class:`Classifier` is a linear filter over a window of FHOG cells (McManus et al. 2015, §3.2: one SVM per
 scene signature) with the shape it was mined from, its nominal position and scale, and the
 score-to-probability calibration lambda of eq. (5).  A :class:`Bank` holds the classifiers of a
 place, stores to and from plain arrays (the map store writes that dict), and detects all of them in
@@ -23,6 +23,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from surveys.settings import merge_settings
 
 from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
 from signatures.hog import level_scale, level_size, window_cell
@@ -353,7 +355,7 @@ class Bank:
         -------
         Detections
         """
-        cfg = {**default_config, **(config or {})}
+        cfg = merge_settings(default_config, config, "detection")
         n = len(self)
         if isinstance(image, HogPyramid):
             pyr = image
@@ -568,38 +570,3 @@ def _pick(classifiers, pyr: HogPyramid, maps, top_n: int, refine: bool, nms_iou:
             if t == top_n:
                 break
     return Detections(**res)
-
-
-def main(argv=None) -> int:
-    """``python -m signatures.bank BANK.npz IMAGE``: detect a stored bank, print JSON."""
-    import argparse
-    import json
-
-    import cv2
-
-    from surveys.errors import DataError
-
-    ap = argparse.ArgumentParser(description="Detect a stored bank (.npz from Bank.to_arrays) "
-                                             "in an image and print the detections as JSON.")
-    ap.add_argument("bank", help=".npz file holding Bank.to_arrays()")
-    ap.add_argument("image")
-    ap.add_argument("--top-n", type=int, default=1)
-    args = ap.parse_args(argv)
-    try:
-        with np.load(args.bank, allow_pickle=False) as z:
-            bank = Bank.from_arrays(dict(z))
-    except (OSError, ValueError) as e:
-        raise DataError(args.bank, f"not a bank file: {e}") from None
-    img = cv2.imread(args.image, cv2.IMREAD_COLOR)
-    if img is None:
-        raise DataError(args.image, "cannot read or decode image")
-    det = bank.detect(img, top_n=args.top_n)
-    rows = [{"classifier": i, "x": det.x[i].tolist(), "y": det.y[i].tolist(),
-             "scale": det.scale[i].tolist(), "score": det.score[i].tolist(),
-             "prob": det.prob[i].tolist()} for i in range(len(det))]
-    print(json.dumps(rows))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

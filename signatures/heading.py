@@ -1,5 +1,5 @@
 """Scene-signature heading estimation on GRIEF data sets (the *signatures* method of the heading
-benchmark, issue §5).
+benchmark).
 
 For a protocol pair (map image i, live image j) of one place the horizontal displacement of the
 scene is estimated from a bank of scene signatures of that place that never saw image j:
@@ -47,6 +47,7 @@ import numpy as np
 
 from signatures import hog as hogmod
 from signatures import mining
+from surveys.settings import merge_settings
 
 __all__ = ["default_config", "SignatureHeading", "estimate_heading_signatures", "vote_displacement",
            "augment"]
@@ -246,14 +247,9 @@ class SignatureHeading:
             from surveys.grief import load
             dataset = load(dataset)
         self.dataset = dataset
-        cfg = {**default_config}
-        if dataset.kind == "sequence":
-            cfg.update(sequence_overrides)
-        cfg.update(config or {})
-        unknown = set(config or {}) - set(default_config)
-        if unknown:
-            raise ValueError(f"unknown heading config keys: {', '.join(sorted(unknown))}")
-        self.config = cfg
+        base = merge_settings(default_config, sequence_overrides if dataset.kind == "sequence" else None,
+                              "heading", open=("mining",))
+        self.config = merge_settings(base, config, "heading", open=("mining",))
         self.n_jobs = int(n_jobs)
         self.progress = progress
         self.records: dict = {}
@@ -435,33 +431,3 @@ def estimate_heading_signatures(dataset, pairs, progress: bool = True, config: d
         One estimate per pair (NaN where no classifier survived mining).
     """
     return SignatureHeading(dataset, config, n_jobs, progress).estimate(list(pairs))
-
-
-def main(argv=None) -> int:
-    """``python -m signatures.heading DATASET``: signature-method error rate on a GRIEF set."""
-    import argparse
-    import json
-
-    from surveys.grief import load
-
-    ap = argparse.ArgumentParser(description="Scene-signature heading estimation on a GRIEF data "
-                                             "set (error rate at the protocol's 20 px).")
-    ap.add_argument("dataset")
-    ap.add_argument("--n-jobs", type=int, default=2)
-    ap.add_argument("--config", help="JSON overrides of signatures.heading.default_config")
-    args = ap.parse_args(argv)
-    ds = load(args.dataset)
-    pairs = list(ds.pairs())
-    est = SignatureHeading(ds, json.loads(args.config) if args.config else None, args.n_jobs)
-    t0 = time.perf_counter()
-    out = np.array(est.estimate(pairs))
-    truth = np.array([ds.truth(p) for p in pairs])
-    errors = int(np.sum(~(np.abs(out - truth) < 20)))
-    print(json.dumps({"dataset": ds.name, "pairs": len(pairs), "errors": errors,
-                      "error_rate": errors / max(1, len(pairs)),
-                      "seconds": round(time.perf_counter() - t0, 1)}))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

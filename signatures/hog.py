@@ -25,17 +25,16 @@ A detector that only searches windows needs a fraction of each level: :func:`bui
 and describes only a cell box per level plus :data:`REGION_MARGIN_CELLS`, and those cells are bit for
 bit the whole level's.
 
-Run ``python -m signatures.hog [IMAGE]`` to time one level and a pyramid.
+``scenesig bench hog [IMAGE]`` times one level and a pyramid.
 """
 from __future__ import annotations
 
-import argparse
-import json
-import time
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+
+from surveys.settings import merge_settings
 
 __all__ = ["default_config", "FEATURE_DIM", "fhog", "HogPyramid", "build_pyramid", "level_scale",
            "level_size", "window_cell", "resize_area_region", "to_gray_float", "REGION_MARGIN_CELLS"]
@@ -493,8 +492,7 @@ def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None, re
     HogPyramid
         With ``regions`` recording the partly computed levels.
     """
-    cfg = {**default_config, **(config or {})}
-    cfg = {k: cfg[k] for k in default_config}
+    cfg = merge_settings(default_config, config, "HOG")
     spo, cell = int(cfg["scales_per_octave"]), int(cfg["cell"])
     tune_malloc()        # before the first resize, not only the first fhog (see tune_malloc)
     img = to_gray_float(image, bool(cfg["color"]))
@@ -514,39 +512,3 @@ def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None, re
                 valid[k] = part
         sizes[k] = (lw, lh)
     return HogPyramid(out, (w, h), cfg, sizes, valid)
-
-
-def _time(fn, repeat: int = 20) -> float:
-    fn()
-    t = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        t.append(time.perf_counter() - t0)
-    return 1000.0 * float(np.median(t))
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description="Time the HOG level and pyramid on one image.")
-    ap.add_argument("image", nargs="?", help="image file (default: random 640x480 texture)")
-    ap.add_argument("--levels", type=int, default=9, help="pyramid levels 0..N-1")
-    args = ap.parse_args(argv)
-    if args.image:
-        img = cv2.imread(args.image, cv2.IMREAD_COLOR)
-        if img is None:
-            from surveys.errors import DataError
-            raise DataError(args.image, "cannot read or decode image")
-    else:
-        rng = np.random.default_rng(0)
-        img = cv2.GaussianBlur(rng.integers(0, 255, (480, 640), dtype=np.uint8), (5, 5), 1.5)
-    print(json.dumps({
-        "image": list(img.shape[:2]),
-        "hog_ms_per_level": round(_time(lambda: fhog(img)), 2),
-        "hog_pyramid_ms": round(_time(lambda: build_pyramid(img, levels=range(args.levels))), 2),
-        "levels": args.levels,
-    }))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,4 +1,4 @@
-"""Iterative discriminative clustering of candidate shapes for one place (paper §3.2, Fig. 3).
+"""Iterative discriminative clustering of candidate shapes for one place (McManus et al. 2015, §3.2, Fig. 3).
 
 For every candidate shape of the fixed template (:mod:`signatures.shapes`):
 
@@ -40,12 +40,10 @@ The work per shape is vectorised: every candidate window of a shape is unrolled 
 and each SVM fit only adds the rows of the current positives.  Shapes run in parallel with joblib
 (``n_jobs``); the HOG pyramids are computed once per image and shared.
 
-Run ``python -m signatures.mining --help`` to mine a place from a folder of images.
+``scenesig bench mining IMAGE...`` mines a place from a folder of images.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import math
 import time
@@ -54,6 +52,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from surveys.validation import check_image
+from surveys.settings import merge_settings
 
 from signatures import hog as hogmod
 from signatures.bank import Bank, Classifier
@@ -136,11 +137,8 @@ class MiningStats:
 
 
 def _merge(config: dict | None) -> dict:
-    cfg = {**default_config, **(config or {})}
-    unknown = set(config or {}) - set(default_config)
-    if unknown:
-        raise ValueError(f"unknown mining config keys: {', '.join(sorted(unknown))}")
-    cfg["hog"] = {**hogmod.default_config, **(cfg["hog"] or {})}
+    cfg = merge_settings(default_config, config, "mining", open=("hog",))
+    cfg["hog"] = merge_settings(hogmod.default_config, cfg["hog"] or None, "HOG")
     if cfg["n_partitions"] < 2:
         raise ValueError("n_partitions must be >= 2")
     if cfg["min_nominal_level"] < cfg["scale_search"]:
@@ -642,10 +640,7 @@ def _mine_chunk(pd: _Place, items):
 
 
 def _as_image(img, what: str, i: int) -> np.ndarray:
-    a = np.asarray(img)
-    if a.ndim not in (2, 3) or a.size == 0:
-        raise ValueError(f"{what} {i}: expected a gray or BGR image array, got shape {a.shape}")
-    return a
+    return check_image(img, f"{what} {i}")
 
 
 def mine_place(images, offsets=None, config: dict | None = None, negatives=None, n_jobs: int = 1,
@@ -753,28 +748,3 @@ def mine_place(images, offsets=None, config: dict | None = None, negatives=None,
         firings={r[0]: r[3]["firings"] for r in results if r[1] == "converged"})
     bank = Bank(classifiers, image_size=size)
     return bank, stats
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description="Mine scene signatures for one place from a folder "
-                                             "of aligned images (offsets assumed zero).")
-    ap.add_argument("images", nargs="+", help="image files of one place")
-    ap.add_argument("--out", help="write the bank arrays to this .npz")
-    ap.add_argument("--n-jobs", type=int, default=1)
-    args = ap.parse_args(argv)
-    from surveys.errors import DataError
-    imgs = []
-    for p in args.images:
-        im = cv2.imread(p, cv2.IMREAD_COLOR)
-        if im is None:
-            raise DataError(p, "cannot read or decode image")
-        imgs.append(im)
-    bank, stats = mine_place(imgs, n_jobs=args.n_jobs, progress=True)
-    if args.out:
-        np.savez_compressed(args.out, **bank.to_arrays())
-    print(json.dumps(stats.as_dict()))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

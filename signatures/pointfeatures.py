@@ -17,16 +17,15 @@ both use these pieces, so each stage is its own function:
    "20-px bins"); ``voting="sliding"`` slides the bin over all positions, which is what GRIEF's
    ``match_all`` does (it tries the 20 one-pixel shifts of the grid) and avoids splitting a peak
    that straddles a bin edge.
-
-Run ``python -m signatures.pointfeatures MAP LIVE`` to match two images and print the estimate.
 """
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+
+from surveys.settings import merge_settings
 
 __all__ = ["default_config", "PointFeatures", "Matches", "Vote", "extract", "match",
            "vote_displacement", "estimate_displacement", "FEATURE_KINDS", "MATCH_FILTERS"]
@@ -176,13 +175,7 @@ def _make(kind: str, config: dict):
 
 
 def _merge(config: dict | None) -> dict:
-    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in default_config.items()}
-    for k, v in (config or {}).items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k].update(v)
-        else:
-            out[k] = v
-    return out
+    return merge_settings(default_config, config, "point-feature")
 
 
 def extract(image: np.ndarray, kind: str = "orb", n_features: int | None = None,
@@ -279,7 +272,7 @@ def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: floa
     filter : {"ratio", "dapc", "none"}
         ``ratio``: keep when ``d1 < ratio * d2`` (Lowe).  ``dapc``: keep when
         ``d1 < d2 - mean(d2 - d1)``, the mean over all of a's 2-NN pairs -- a threshold that adapts
-        to how separable this image pair's descriptors are (seed 002, eq. 6-7).  ``none``: keep
+        to how separable this image pair's descriptors are (M2Det scene-matching paper, §3.4, eqs. 6-7).  ``none``: keep
         every nearest neighbour.
     ratio : float
         Ratio for ``filter="ratio"``.
@@ -287,7 +280,7 @@ def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: floa
         Also require a's feature to be b's feature's nearest neighbour (cross-check).
     dapc_over : {"all", "mutual"}
         Which 2-NN pairs the DAPC mean gap is taken over: all of a's (default), or -- with
-        ``mutual`` -- only the mutual pairs, the order of seed 002's procedure (bidirectional
+        ``mutual`` -- only the mutual pairs, the order of the M2Det scene-matching paper's procedure (§3.4) (bidirectional
         matching first, steps c-e, then the dynamic distance test, step f).
 
     Returns
@@ -395,31 +388,3 @@ def estimate_displacement(a: PointFeatures, b: PointFeatures,
     dy = b.xy[m.train, 1] - a.xy[m.query, 1]
     vote = vote_displacement(dx, dy=dy, **cfg["vote"])
     return vote, m
-
-
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("map_image")
-    p.add_argument("live_image")
-    p.add_argument("--kind", default="orb", choices=FEATURE_KINDS)
-    p.add_argument("--filter", default="ratio", choices=MATCH_FILTERS)
-    p.add_argument("--mutual", action="store_true")
-    p.add_argument("--voting", default="sliding", choices=("fixed", "sliding"))
-    args = p.parse_args(argv)
-    imgs = []
-    for path in (args.map_image, args.live_image):
-        img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            p.error(f"{path}: cannot read image")
-        imgs.append(img)
-    fa, fb = (extract(im, args.kind) for im in imgs)
-    vote, m = estimate_displacement(fa, fb, {"match": {"filter": args.filter,
-                                                        "mutual": args.mutual},
-                                             "vote": {"voting": args.voting}})
-    print(f"{len(fa)} / {len(fb)} features, {len(m)} matches, displacement {vote.displacement:.1f}"
-          f" px ({vote.support} votes in [{vote.bin[0]:.0f}, {vote.bin[1]:.0f}))")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

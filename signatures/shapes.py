@@ -16,13 +16,9 @@ size:
 
 The default kinds (squares at three sizes, 2:1 / 1:2 blocks, 4:1 / 1:4 strips, long 8:1 wide strips
 and 1:6 tall strips -- the "unique strips" of the paper's Fig. 5) total 296 shapes.
-
-Run ``python -m signatures.shapes WIDTH HEIGHT`` to print the template.
 """
 from __future__ import annotations
 
-import argparse
-import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,23 +123,3 @@ def candidate_shapes(width: int, height: int, config: dict | None = None) -> Sha
     return ShapeSet(np.asarray(boxes, dtype=float), np.asarray(kind, dtype=int),
                     tuple(k.get("name", f"kind{i}") for i, k in enumerate(kinds)),
                     (int(width), int(height)))
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description="Print the candidate-shape template for an image size.")
-    ap.add_argument("width", type=int)
-    ap.add_argument("height", type=int)
-    args = ap.parse_args(argv)
-    s = candidate_shapes(args.width, args.height)
-    summary = {}
-    for i, name in enumerate(s.kind_names):
-        sel = s.kind == i
-        if sel.any():
-            summary[name] = {"count": int(sel.sum()), "w": int(s.boxes[sel][0, 2]),
-                             "h": int(s.boxes[sel][0, 3])}
-    print(json.dumps({"total": len(s), "kinds": summary}, indent=1))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

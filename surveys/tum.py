@@ -11,6 +11,7 @@ import numpy as np
 
 from .errors import DataError
 from .geometry import pose_to_xyzquat, xyzquat_to_pose
+from .io import atomic_write_text
 
 __all__ = ["read_tum", "write_tum", "format_tum"]
 
@@ -79,6 +80,4 @@ def format_tum(times, poses) -> str:
 def write_tum(path, times, poses) -> None:
     """Write a TUM file atomically (temp file + rename): a crash never leaves half a trajectory."""
     path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(format_tum(times, poses))
-    tmp.replace(path)
+    atomic_write_text(path, format_tum(times, poses))

@@ -1,12 +1,13 @@
-"""The paper's experiments (localiser/experiments.py): matching within δ, heat maps, localisation figures."""
+"""The paper's experiments (scenesig/experiments.py, scenesig/plots.py): matching within δ, heat maps,
+localisation figures."""
 import json
 
 import numpy as np
 import pytest
 
 from scenesig.experiments import (aligned_frame, dead_reckoning, find_localise_outputs, frame_distances,
-                                   localisation_figures, matching_experiment, read_localise_output,
-                                   signature_matches, write_matching)
+                                   matching_experiment, read_localise_output, signature_matches)
+from scenesig.plots import localisation_figures, write_matching
 from mapping.pointmap import triangulate_keyframe
 from mapping.store import MapStore, MapWriter, PlaceData
 from signatures.bank import Bank, Classifier

@@ -123,7 +123,7 @@ def _template_map(tmp_path, image, cam, T_vc, depth=25.0, n=12, seed=0):
 
 
 def test_detector_finds_signatures_around_predictions_and_in_the_whole_image(tmp_path):
-    from signatures.synthetic import synthetic_place
+    from localiser.synthetic import synthetic_place
 
     cam = Camera(250.0, 250.0, 159.5, 119.5, 320, 240)
     T_vc = make_pose(CAMERA_FROM_VEHICLE_AXES, [1.2, 0.0, 1.5])
@@ -161,7 +161,7 @@ def test_detector_finds_signatures_around_predictions_and_in_the_whole_image(tmp
 
 
 def test_detector_rejects_images_of_the_wrong_size(tmp_path):
-    from signatures.synthetic import synthetic_place
+    from localiser.synthetic import synthetic_place
 
     cam = Camera(250.0, 250.0, 159.5, 119.5, 320, 240)
     T_vc = make_pose(CAMERA_FROM_VEHICLE_AXES, [1.2, 0.0, 1.5])

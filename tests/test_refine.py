@@ -10,8 +10,9 @@ from mapping.geometry import (
     reproject, reproject_jacobian, window_poses_from_increments, window_poses_from_odometry,
 )
 from mapping.refine import (
-    Detections, default_config, huber, lm_huber, refine_landmarks, synthetic_window, temporal_check,
+    Detections, default_config, huber, lm_huber, refine_landmarks, temporal_check,
 )
+from localiser.synthetic import synthetic_window
 from surveys.geometry import Camera, CAMERA_FROM_VEHICLE_AXES, invert, make_pose, rot_x, rot_y, rot_z
 
 CAM = Camera(500.0, 500.0, 319.5, 239.5, 640, 480)
@@ -251,7 +252,7 @@ def test_refinement_is_deterministic_and_validates_input():
     np.testing.assert_array_equal(a.reason, b.reason)
     np.testing.assert_array_equal(a.points, b.points)
     assert a.counts()["kept"] > 40
-    with pytest.raises(ValueError, match="unknown refinement options"):
+    with pytest.raises(ValueError, match="unknown refinement option"):
         refine_landmarks(*args, config={"huber": 1.0})
     with pytest.raises(ValueError, match="T_window_place"):
         refine_landmarks(w["detections"], w["T_window_place"][:5], w["camera"], w["T_vehicle_camera"])
@@ -297,7 +298,7 @@ def test_measurement_covariance_follows_eq5():
 
 
 def test_benchmark_reports_accuracy():
-    from mapping.refine import benchmark
+    from benchmarks.refine import benchmark
     rep = benchmark(n_landmarks=60, n_frames=15, n_random=6, repeats=1, seed=3)
     assert rep["random_kept"] == 0 and rep["kept_true"] >= 50
     assert rep["depth_rel_error_median"] < 0.05 and rep["seconds_median"] > 0

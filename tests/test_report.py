@@ -8,7 +8,8 @@ import subprocess
 import numpy as np
 import pytest
 
-from scenesig.experiments import MatchingResult, write_matching
+from scenesig.experiments import MatchingResult
+from scenesig.plots import write_matching
 from scenesig.cli import main
 from scenesig.report import build_report
 from surveys.errors import DataError

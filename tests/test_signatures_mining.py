@@ -4,7 +4,7 @@ import pytest
 
 from signatures import mining
 from signatures.shapes import ShapeSet
-from signatures.synthetic import synthetic_place
+from localiser.synthetic import synthetic_place
 
 
 def _shapes(boxes):
@@ -111,5 +111,5 @@ def test_bad_input_is_rejected_with_clear_errors():
         mining.mine_place(images[:2], shapes=_shapes([[40, 30, 48, 48]]))
     with pytest.raises(ValueError, match="one size"):
         mining.mine_place(images[:3] + [images[3][:100]], shapes=_shapes([[40, 30, 48, 48]]))
-    with pytest.raises(ValueError, match="unknown mining config"):
+    with pytest.raises(ValueError, match="unknown mining option"):
         mining.mine_place(images, config={"topk": 3})

@@ -1,14 +1,10 @@
-"""The render-speed benchmark (``python -m surveys.sim.bench``): JSON alone on stdout, the table on
+"""The render-speed benchmark (``scenesig bench render``): JSON alone on stdout, the table on
 stderr, the same JSON in ``--json``; every condition asked for is timed."""
 import json
 
-import pytest
-
-pytest.importorskip("surveys.sim.bench")
-
 
 def test_bench_prints_json_on_stdout_and_writes_it(tmp_path, capsys):
-    from surveys.sim.bench import main
+    from benchmarks.render import main
 
     out = tmp_path / "render.json"
     assert main(["--preset", "tiny", "--frames", "3", "--conditions", "sunny,night", "--json", str(out)]) == 0

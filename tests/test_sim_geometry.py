@@ -13,7 +13,7 @@ import pytest
 from surveys.geometry import Camera, invert, make_pose, rot_y, transform
 from surveys.run import read_run
 from surveys.sim.render import Renderer, build_pyramid, quad_texture_maps
-from surveys.sim.scene import RunScene
+from surveys.sim.scene import RunScene, render_view, static_depth
 from surveys.sim.simulate import simulate
 from surveys.sim.world import World
 
@@ -152,8 +152,8 @@ def test_depth_buffer_is_true_depth_under_near_plane_clipping():
 def test_world_depth_is_the_static_structure(tiny_run):
     out, run, world = tiny_run
     T_wc = run.truth_poses[len(run) // 2] @ run.T_vehicle_camera
-    static = world.depth(T_wc, camera=run.camera)
-    _, with_run = world.render(T_wc, "sunny", run_key=(0,), camera=run.camera)
+    static = static_depth(world, T_wc, camera=run.camera)
+    _, with_run = render_view(world, T_wc, "sunny", run_key=(0,), camera=run.camera)
     fin = np.isfinite(static)
     assert fin.mean() > 0.3
     # the run's parked cars and pedestrians can only hide the structure, never push it back

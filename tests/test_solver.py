@@ -4,7 +4,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from localiser.solver import pose_exp, pose_log, solve, solve_pnp_prior, synthetic_problem
+from localiser.solver import pose_exp, pose_log, solve, solve_pnp_prior
+from localiser.synthetic import synthetic_problem
 from surveys.geometry import invert, make_pose, rot_z
 
 

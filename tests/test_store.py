@@ -172,6 +172,7 @@ KILL_SCRIPT = textwrap.dedent("""
     import os, signal, sys
     sys.path.insert(0, {tests!r})
     import mapping.store as S
+    import surveys.io as IO  # the atomic writer the store uses
     from test_store import CAM, T_VC, PARAMS, make_place
     mode = {mode!r}
     def die():
@@ -195,14 +196,14 @@ KILL_SCRIPT = textwrap.dedent("""
         def fake_open(p, mode="r", *a, **k):
             f = real_open(p, mode, *a, **k)
             return Half(f) if "place_0002" in str(p) and "w" in mode else f
-        S.open = fake_open
+        IO.open = fake_open
     elif mode == "after_rename":     # killed after the rename, before the journal line
-        real = S._fsync_dir
+        real = IO._fsync_dir
         def fsync_dir(folder):
             if (folder / "place_0002.npz").exists():
                 die()
             real(folder)
-        S._fsync_dir = fsync_dir
+        IO._fsync_dir = fsync_dir
     w = S.MapWriter(sys.argv[1], CAM, T_VC, PARAMS)
     for i in range(5):
         w.write_place(i, make_place(i))

@@ -12,6 +12,15 @@ import importlib
 BENCHMARKS = {
     "heading": ("heading", "GRIEF heading-estimation benchmark (error rate at 20 px)."),
     "speed": ("speed", "Training and detection speed on simulated images."),
+    "hog": ("hog", "HOG level and pyramid time on one image."),
+    "refine": ("refine", "Landmark refinement accuracy and speed on synthetic windows."),
+    "solver": ("solver", "Localisation solver back ends on synthetic problems."),
+    "posegraph": ("posegraph", "Sliding-window pose graph on a synthetic drive."),
+    "detector": ("detector", "Bank detection time on a run's frames against a map."),
+    "render": ("render", "Simulator render speed (frames/s per condition, one core)."),
+    "pointmap": ("pointmap", "ORB/SIFT point map of one keyframe: time, size, depth error."),
+    "mining": ("mining", "Mine one place's scene signatures from images; mining statistics."),
+    "realism": ("realism", "ORB matches across simulated conditions (and GRIEF with --real)."),
     "places": ("places", "Place recognition on GRIEF data (recall@1, recall@5 per method)."),
     "relocalise": ("relocalise", "Global localisation cost per frame at 30, 100, 300 places."),
 }

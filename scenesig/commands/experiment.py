@@ -25,7 +25,8 @@ def register(groups):
 
 def run_matching(args) -> int:
     from mapping.store import MapStore
-    from scenesig.experiments import matching_experiment, write_matching
+    from scenesig.experiments import matching_experiment
+    from scenesig.plots import write_matching
     from surveys.run import read_run
 
     store = MapStore.open(args.map)
@@ -38,7 +39,8 @@ def run_matching(args) -> int:
 
 
 def run_localisation(args) -> int:
-    from scenesig.experiments import find_localise_outputs, find_runs, localisation_figures, read_localise_output
+    from scenesig.experiments import find_localise_outputs, find_runs, read_localise_output
+    from scenesig.plots import localisation_figures
 
     outs = [read_localise_output(f) for f in find_localise_outputs(args.results)]
     runs = find_runs(args.runs, {o.run for o in outs}) if args.runs else {}

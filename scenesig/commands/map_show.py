@@ -1,4 +1,4 @@
-"""``scenesig map show MAP --out DIR`` and ``scenesig map verify MAP``: look at a map, check a map."""
+"""``scenesig map show|verify|add-points``: look at a map, check it, add point features to it."""
 from __future__ import annotations
 
 import json
@@ -15,6 +15,11 @@ def register(groups):
     v = groups["map"].add_parser("verify", help=help, description=help)
     v.add_argument("map", help="map folder (maps/NAME)")
     v.set_defaults(_run=run_verify)
+    help = "Add the point-feature baseline's keyframe features to a map built without them."
+    a = groups["map"].add_parser("add-points", help=help, description=help)
+    a.add_argument("map", help="map folder")
+    a.add_argument("--reference", required=True, metavar="RUN", help="the map's reference run")
+    a.set_defaults(_run=run_add_points)
 
 
 def run(args) -> int:
@@ -29,4 +34,12 @@ def run_verify(args) -> int:
     from mapping.store import verify_summary
 
     print(json.dumps(verify_summary(args.map), indent=1))
+    return 0
+
+
+def run_add_points(args) -> int:
+    from mapping.pointmap import add_to_map
+    from surveys.run import read_run
+
+    print(json.dumps(add_to_map(args.map, read_run(args.reference)), indent=1))
     return 0

@@ -15,7 +15,8 @@ from .render import Renderer, billboard_corners, billboard_maps, build_pyramid, 
 from .sky import SKY_ELEV, SKY_QUADS, sky_panorama
 from .world import CLS, BoardSet, QuadSet, World
 
-__all__ = ["RunScene", "default_camera", "default_extrinsic", "CAMERA_HEIGHT", "CAMERA_PITCH_DEG"]
+__all__ = ["RunScene", "render_view", "static_depth", "default_camera", "default_extrinsic", "CAMERA_HEIGHT",
+           "CAMERA_PITCH_DEG"]
 
 CAMERA_HEIGHT = 1.5       # metres above the road
 CAMERA_FORWARD = 1.2      # metres ahead of the vehicle origin (rear axle)
@@ -208,3 +209,37 @@ class RunScene:
             return img, depth, {"cls": r.cls.copy(), "invz": r.invz.copy(), "fb": r.fb.copy(), "ids": r.ids.copy(),
                                 "stats": dict(r.stats)}
         return img, depth
+
+
+# ---------------------------------------------------------------------------------------------- one-off views
+def _cached_scene(world: World, condition, run_key, camera, distractors=True) -> RunScene:
+    """The world's last one-off scene if it has these settings, else a new one (kept on the world, one at a
+    time: each holds its textures)."""
+    key = (condition, None if run_key is None else tuple(np.atleast_1d(run_key)), camera, distractors)
+    cache = world.__dict__.setdefault("_one_off_scene", {})
+    sc = cache.get(key)
+    if sc is None:
+        sc = RunScene(world, condition, run_key=run_key if run_key is not None else ("static",), camera=camera,
+                      distractors=distractors)
+        cache.clear()
+        cache[key] = sc
+    return sc
+
+
+def render_view(world: World, T_world_camera, condition: str = "sunny", run_key=(0,), camera=None):
+    """Render one view of ``world``: returns (BGR uint8 image, float32 depth (z, metres; inf for sky)).
+
+    ``run_key`` selects the run whose distractors (cars, pedestrians) and per-run draws are used; the
+    simulator's run number ``i`` is ``run_key=(i,)``.  The scene is kept for the next call with the
+    same settings.
+    """
+    return _cached_scene(world, condition, run_key, camera).render(T_world_camera)
+
+
+def static_depth(world: World, T_world_camera, camera=None, run_key=None) -> np.ndarray:
+    """Ground-truth depth image (z, metres; inf where only sky) of the *static* world from a pose.
+
+    Parked cars and pedestrians are left out unless ``run_key`` names a run, so that it gives the true
+    depth of the permanent structure a map's landmarks should lie on.
+    """
+    return _cached_scene(world, "overcast", run_key, camera, distractors=run_key is not None).render(T_world_camera)[1]

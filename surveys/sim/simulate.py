@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io import atomic_write_text
 from ..run import SurveyRun, write_run
 from .conditions import CONDITIONS
 from .motion import gps_fixes, ins, odometry, plan_drive
@@ -136,12 +137,8 @@ def simulate_run(preset: str, seed: int, index: int, condition: str, out_dir, ca
 
 
 def simulate(out, preset: str = "demo", seed: int = 0, runs: list[str] | None = None, camera_hz: float = 20.0,
-             jobs: int = 1, overwrite: bool = False, show_progress: bool = True, start_m: float = 0.0,
-             **rates) -> dict:
-    """Simulate a preset's runs (or the given condition list) into ``out``; returns the summary.
-
-    ``start_m``: distance along the route where every run begins (0: the route's start).
-    """
+             jobs: int = 1, overwrite: bool = False, show_progress: bool = True, start_m: float = 0.0, **rates) -> dict:
+    """Simulate a preset's runs (or the given condition list) into ``out``; returns the summary."""
     from tqdm import tqdm
 
     if preset not in PRESETS:
@@ -171,7 +168,7 @@ def simulate(out, preset: str = "demo", seed: int = 0, runs: list[str] | None = 
     # everything that depends on this call rather than on the world goes in "runs"
     desc["runs"] = [{"name": n, "conditions": [c], "camera_hz": float(camera_hz), "start_m": float(start_m)}
                     for n, c in zip(names, conditions)]
-    (out / "world.json").write_text(json.dumps(desc, indent=1))
+    atomic_write_text(out / "world.json", json.dumps(desc, indent=1))
     kw = dict(camera_hz=camera_hz, start_m=float(start_m), **{k: v for k, v in rates.items() if v is not None})
     bar = tqdm(total=total, unit="frame", desc=f"simulate {preset}", disable=not show_progress)
     results = []
@@ -196,8 +193,7 @@ def simulate(out, preset: str = "demo", seed: int = 0, runs: list[str] | None = 
     summary = {"runs": [{"name": r["name"], "conditions": r["conditions"]} for r in results],
                "frames": int(frames), "seconds": round(seconds, 3),
                "frames_per_second": round(frames / seconds, 2) if seconds > 0 else None,
-               "preset": preset, "seed": int(seed), "camera_hz": float(camera_hz), "start_m": float(start_m),
-               "jobs": int(jobs),
+               "preset": preset, "seed": int(seed), "camera_hz": float(camera_hz), "start_m": float(start_m), "jobs": int(jobs),
                "image_size": list(world.image_size)}
-    (out / "simulate_summary.json").write_text(json.dumps(summary, indent=1))
+    atomic_write_text(out / "simulate_summary.json", json.dumps(summary, indent=1))
     return summary

@@ -20,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..io import atomic_write_text
 from . import ground, props, sky, textures
 from .ground import KERB_OUT, PAVE_OUT, StreetStyle
 from .noise import rng_for
@@ -676,7 +677,7 @@ class World:
 
     def save(self, path) -> Path:
         path = Path(path)
-        path.write_text(json.dumps(self.to_json(), indent=1))
+        atomic_write_text(path, json.dumps(self.to_json(), indent=1))
         return path
 
     @classmethod
@@ -699,38 +700,3 @@ class World:
         if abs(w.route.total - d["route"]["length_m"]) > 1e-3:
             raise DataError(path, "regenerated route differs from the recorded one")
         return w
-
-    # ------------------------------------------------------------------ rendering shortcuts
-    def scene(self, condition: str = "sunny", run_key=(0,), camera=None, **kw):
-        """A :class:`surveys.sim.scene.RunScene` (this world under one run's condition and distractors)."""
-        from .scene import RunScene
-
-        return RunScene(self, condition, run_key=run_key, camera=camera, **kw)
-
-    def _cached_scene(self, condition, run_key, camera, distractors=True):
-        key = (condition, None if run_key is None else tuple(np.atleast_1d(run_key)), camera, distractors)
-        cache = self.__dict__.setdefault("_scenes", {})
-        sc = cache.get(key)
-        if sc is None:
-            sc = self.scene(condition, run_key if run_key is not None else ("static",), camera,
-                            distractors=distractors)
-            cache.clear()  # keep one scene: each holds its textures
-            cache[key] = sc
-        return sc
-
-    def render(self, T_world_camera, condition: str = "sunny", run_key=(0,), camera=None):
-        """Render one view: returns (BGR uint8 image, float32 depth (z, metres; inf for sky)).
-
-        ``run_key`` selects the run whose distractors (cars, pedestrians) and per-run draws are used;
-        the simulator's run number ``i`` is ``run_key=(i,)``.
-        """
-        return self._cached_scene(condition, run_key, camera).render(T_world_camera)
-
-    def depth(self, T_world_camera, camera=None, run_key=None) -> np.ndarray:
-        """Ground-truth depth image (z, metres; inf where only sky) of the *static* world from a pose.
-
-        Parked cars and pedestrians are left out unless ``run_key`` names a run, so that it gives the
-        true depth of the permanent structure a map's landmarks should lie on.
-        """
-        sc = self._cached_scene("overcast", run_key, camera, distractors=run_key is not None)
-        return sc.render(T_world_camera)[1]

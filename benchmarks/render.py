@@ -1,6 +1,6 @@
 """Rendering speed benchmark: frames per second on one core, per condition.
 
-``python -m surveys.sim.bench --preset demo --frames 300`` drives a lap's worth of poses through the
+``scenesig bench render --preset demo --frames 300`` drives a lap's worth of poses through the
 preset's world and reports rendered frames/s (texture baking included: it is part of a real run) and
 with JPEG encoding (quality 95, as written to disk).  OpenCV is limited to one thread.
 """
@@ -15,11 +15,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .conditions import CONDITIONS
-from .motion import plan_drive
-from .noise import rng_for
-from .scene import RunScene, default_extrinsic
-from .views import get_world
+from surveys.io import atomic_write_text
+from surveys.sim.conditions import CONDITIONS
+from surveys.sim.motion import plan_drive
+from surveys.sim.noise import rng_for
+from surveys.sim.scene import RunScene, default_extrinsic
+from surveys.sim.views import get_world
 
 __all__ = ["benchmark", "main"]
 
@@ -56,7 +57,7 @@ def benchmark(preset: str = "demo", seed: int = 0, frames: int = 300, conditions
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m surveys.sim.bench", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="scenesig bench render", description=__doc__.split("\n")[0])
     p.add_argument("--preset", default="demo")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--frames", type=int, default=300)
@@ -74,10 +75,12 @@ def main(argv=None) -> int:
     text = json.dumps(res)
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(text + "\n")
+        atomic_write_text(a.json, text + "\n")
     print(text)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from scenesig.cli import main as _cli
+
+    sys.exit(_cli(["bench", "render", *sys.argv[1:]]))

@@ -8,7 +8,7 @@ ratio test (0.8); a match is *consistent with ground truth* when the reference k
 within 10 px of the matched keypoint.  On real data (McManus et al.; the GRIEF benchmark) point
 features match in the hundreds between similar days and collapse at night, in snow and in fog.
 
-Run ``python -m surveys.sim.realism --json OUT.json`` (add ``--real`` to also run the same matcher on
+Run ``scenesig bench realism --json OUT.json`` (add ``--real`` to also run the same matcher on
 the GRIEF images in ``../shared/data/grief`` as a reference).
 """
 from __future__ import annotations
@@ -22,12 +22,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..geometry import invert
-from .conditions import CONDITIONS
-from .motion import LANE_CENTRE
-from .noise import rng_for
-from .scene import RunScene, default_camera
-from .views import get_world, view_pose
+from surveys.geometry import invert
+from surveys.io import atomic_write_text
+from surveys.sim.conditions import CONDITIONS
+from surveys.sim.motion import LANE_CENTRE
+from surveys.sim.noise import rng_for
+from surveys.sim.scene import RunScene, default_camera
+from surveys.sim.views import get_world, view_pose
 
 __all__ = ["orb_consistent_matches", "realism_table", "grief_reference", "main"]
 
@@ -183,7 +184,7 @@ def format_table(result: dict) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m surveys.sim.realism", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="scenesig bench realism", description=__doc__.split("\n")[0])
     p.add_argument("--preset", default="demo")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--places", type=int, default=12)
@@ -193,7 +194,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     res = realism_table(a.preset, a.seed, a.places)
     if a.real:
-        root = Path(__file__).resolve().parents[3] / "shared" / "data" / "grief"
+        root = Path(__file__).resolve().parents[2] / "shared" / "data" / "grief"
         if root.is_dir():
             res["real"] = grief_reference(root)
         else:
@@ -202,9 +203,11 @@ def main(argv=None) -> int:
     print(format_table(res))
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(res, indent=1))
+        atomic_write_text(a.json, json.dumps(res, indent=1))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from scenesig.cli import main as _cli
+
+    sys.exit(_cli(["bench", "realism", *sys.argv[1:]]))

@@ -1,0 +1,268 @@
+"""What ``scenesig localise`` writes, and reads back: ``trajectory.tum``, ``frames.csv``, ``metrics.json``.
+
+:func:`compute_metrics` turns a :class:`localiser.replay.ReplayResult` into the ``metrics.json`` content
+(errors against the run's truth across the reference path through the map's places, see
+:mod:`localiser.evaluation`); :func:`write_outputs` writes the three files (and ``trajectory.png``,
+:mod:`localiser.plots`) atomically.  :data:`FRAMES_COLUMNS` is the one definition of ``frames.csv``'s
+columns, used by its writer and its reader :func:`read_frames_csv`.
+"""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mapping.store import MapStore
+from surveys.errors import DataError
+from surveys.io import atomic_write_text
+from surveys.tum import write_tum
+
+from .evaluation import ReferencePath, evaluate
+
+if TYPE_CHECKING:
+    from .replay import ReplayResult
+
+__all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "FALSE_FIX_M", "reference_path", "map_relative_truth", "compute_metrics",
+           "write_frames_csv", "read_frames_csv", "write_outputs"]
+
+#: Columns of ``frames.csv``.
+FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
+                  "distance_since_localisation")
+#: ``metrics.json`` entries that measure the machine rather than the result (they differ between runs).
+TIMING_KEYS = ("ms_per_detection", "ms_per_solve", "ms_per_odometry_update", "ms_per_retrieval", "realtime_factor",
+               "wall_seconds")
+#: Accepted localisations further than this from the truth are ``false_fixes`` (metres).
+FALSE_FIX_M = 5.0
+
+
+def reference_path(store: MapStore) -> ReferencePath:
+    """The reference path: the map's places in order, closed if the route is a loop."""
+    ids = sorted(store.places)
+    poses = np.stack([store.places[i].T_world_place for i in ids])
+    if len(ids) > 2 and ids[-1] in store.places[ids[0]].neighbours:
+        poses = np.concatenate([poses, poses[:1]])
+    return ReferencePath(poses)
+
+
+def map_relative_truth(store: MapStore, truth_poses: np.ndarray) -> np.ndarray | None:
+    """Truth expressed in the map's frame, or None when the map does not record its places' truth.
+
+    The map's frame is realised by the training runs' INS (combined per place by
+    :mod:`mapping.georef`), whose error (metres, for a GPS-aided INS) every place carries.  A simulated map records each place's exact pose (``extra["T_truth_place"]``),
+    so a true pose can be carried into the map frame through the nearest place:
+    ``T_world_place · T_truth_place⁻¹ · T_truth``.  Errors against that are the localiser's own;
+    errors against the raw truth add the map's georeferencing error, which no localiser can remove.
+    """
+    ids = sorted(store.places)
+    if not ids or any("T_truth_place" not in store.places[i].extra for i in ids):
+        return None
+    Tw = np.stack([store.places[i].T_world_place for i in ids])
+    Tt = np.stack([np.asarray(store.places[i].extra["T_truth_place"], float) for i in ids])
+    P = np.asarray(truth_poses, float).reshape(-1, 4, 4)
+    near = np.argmin(np.linalg.norm(P[:, None, :3, 3] - Tt[None, :, :3, 3], axis=2), axis=1)
+    corr = Tw @ np.linalg.inv(Tt)             # (K,4,4) truth -> map frame at each place
+    return corr[near] @ P
+
+
+def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: float | None = None):
+    """``metrics.json`` content and the evaluation behind it (per-frame errors).
+
+    Keys: ``method``, ``run``, ``conditions``; ``lateral_error_m`` and ``heading_error_deg``
+    (``{"median", "mean", "p95"}`` of absolute errors against the run's exact truth, lateral = across
+    the reference path through the map's places; :mod:`localiser.evaluation`); ``localised_fraction``,
+    ``failures`` (oracle resets), ``failures_per_km``, ``blind_fraction_over_20m``; where the map
+    records its places' truth (simulated maps) also ``lateral_error_map_m``, ``heading_error_map_deg``
+    (the same errors relative to the map, see :func:`map_relative_truth`) and
+    ``map_georeference_error_m`` (how far the map's places are from their truth); localising without
+    INS/GPS (:func:`_no_oracle_metrics`): ``oracle``, ``oracle_reads``, ``first_fix_m``,
+    ``relocalisations``, ``false_fixes``, ``relocalise_m`` (errors and coverage then count from the first
+    fix on); timings ``ms_per_detection``, ``ms_per_solve``, ``ms_per_odometry_update``,
+    ``ms_per_retrieval`` (global search only), ``realtime_factor`` (data
+    duration / wall time of the replay), ``wall_seconds``; bookkeeping ``mode``, ``every``,
+    ``distance_m``, ``duration_s``, ``frames``, ``frames_evaluated``, ``detector_frames``,
+    ``localisations``, ``truth_source``, ``map``, and in real-time mode ``frames_dropped`` and
+    ``frames_detected``.  Without ``truth.tum`` the errors are taken against ``groundtruth.tum``
+    (``truth_source``).
+    """
+    run = result.run
+    if run.truth_times is not None:
+        tt, tp, source = run.truth_times, run.truth_poses, "truth"
+    elif run.groundtruth_times is not None:
+        tt, tp, source = run.groundtruth_times, run.groundtruth_poses, "groundtruth"
+    else:
+        raise DataError(run.root or Path(run.name), "no truth.tum or groundtruth.tum to evaluate against")
+    ev = _evaluate_valid(result, tt, tp, store, max_path_distance_m)
+    m = ev.metrics
+    tm = result.timings
+    map_errors = {}
+    tmap = map_relative_truth(store, tp) if source == "truth" else None
+    if tmap is not None:
+        from .evaluation import summary
+
+        evm = _evaluate_valid(result, tt, tmap, store, max_path_distance_m)
+        # the map's own error: its places against their truth
+        ids = sorted(store.places)
+        off = [np.linalg.norm(store.places[i].T_world_place[:2, 3] - np.asarray(store.places[i].extra["T_truth_place"])[:2, 3])
+               for i in ids]
+        map_errors = {"lateral_error_map_m": evm.metrics["lateral_error_m"],
+                      "heading_error_map_deg": evm.metrics["heading_error_deg"],
+                      "map_georeference_error_m": summary(off)}
+    metrics = {
+        "method": result.method,
+        "run": run.name,
+        "conditions": list(run.conditions),
+        "lateral_error_m": m["lateral_error_m"],
+        "heading_error_deg": m["heading_error_deg"],
+        "localised_fraction": m["localised_fraction"],
+        "failures": int(result.failures),
+        "failures_per_km": m["failures_per_km"],
+        "blind_fraction_over_20m": m["blind_fraction_over_20m"],
+        **_no_oracle_metrics(result, ev, tt, tp if tmap is None else tmap),
+        **map_errors,
+        "ms_per_detection": tm.get("ms_per_detection"),
+        "ms_per_solve": tm.get("ms_per_solve"),
+        "ms_per_odometry_update": tm.get("ms_per_odometry_update"),
+        "ms_per_retrieval": tm.get("ms_per_retrieval"),
+        "realtime_factor": tm.get("realtime_factor"),
+        "wall_seconds": tm.get("wall_seconds"),
+        "mode": result.mode,
+        "every": result.every,
+        "distance_m": m["distance_m"],
+        "duration_s": tm.get("duration_s"),
+        "frames": int(len(result.times)),
+        "frames_evaluated": m["frames_evaluated"],
+        "detector_frames": int(result.detector_ran.sum()),
+        "localisations": int(result.localised.sum()),
+        "truth_source": source,
+        "map": str(store.root),
+    }
+    for k in ("frames_dropped", "frames_detected"):
+        if k in tm:
+            metrics[k] = tm[k]
+    return metrics, ev
+
+
+def _evaluate_valid(result: ReplayResult, truth_times, truth_poses, store: MapStore, max_path_distance_m):
+    """:func:`localiser.evaluation.evaluate` over the frames with a world pose (all of them with an oracle;
+    from the first fix on without one), its per-frame series put back on every frame (NaN elsewhere)."""
+    from surveys.geometry import interpolate_poses
+
+    from .evaluation import EvaluationResult, travelled
+
+    v = np.asarray(result.valid, bool)
+    if v.all():
+        return evaluate(result.times, result.poses, truth_times, truth_poses, reference_path(store), result.localised,
+                        result.resets, max_path_distance_m=max_path_distance_m)
+    n = len(result.times)
+    dist = travelled(interpolate_poses(truth_times, truth_poses, result.times).reshape(-1, 4, 4)[:, :3, 3])
+    lat, hd, blind = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+    if v.sum() >= 2:
+        ev = evaluate(result.times[v], result.poses[v], truth_times, truth_poses, reference_path(store),
+                      result.localised[v], result.resets[v], max_path_distance_m=max_path_distance_m)
+        lat[v], hd[v], blind[v] = ev.lateral_m, ev.heading_deg, ev.blind_m
+        metrics = ev.metrics
+    else:   # never localised: nothing to evaluate but the distance driven
+        from .evaluation import summary
+
+        metrics = {"lateral_error_m": summary([]), "heading_error_deg": summary([]), "localised_fraction": 0.0,
+                   "failures": int(result.failures), "failures_per_km": None, "blind_fraction_over_20m": None,
+                   "distance_m": float(dist[-1]) if n else 0.0, "frames_evaluated": 0}
+    return EvaluationResult(metrics, lat, hd, blind, dist)
+
+
+def _no_oracle_metrics(result: ReplayResult, ev, truth_times, truth_poses) -> dict:
+    """``oracle``, ``oracle_reads``, ``first_fix_m``, ``relocalisations``, ``false_fixes``, ``relocalise_m``.
+
+    Distances are along the truth (``ev.distance_m``, from the first frame); a false fix is an accepted
+    localisation whose estimate is more than :data:`FALSE_FIX_M` from the truth (relative to the map
+    where the map records its places' truth, so the map's own georeferencing error does not count).
+    """
+    from surveys.geometry import interpolate_poses
+
+    from .evaluation import summary
+
+    s = np.asarray(ev.distance_m, float)
+
+    def at(t):
+        return float(np.interp(t, result.times, s)) if len(s) else 0.0
+
+    first = None
+    if result.oracle == "ins":
+        first = 0.0
+    elif result.first_fix_time is not None:
+        first = at(result.first_fix_time) - (float(s[0]) if len(s) else 0.0)
+    loc = np.asarray(result.localised, bool) & np.asarray(result.valid, bool)
+    false = 0
+    if loc.any():
+        truth = interpolate_poses(truth_times, truth_poses, result.times[loc]).reshape(-1, 4, 4)
+        err = np.linalg.norm(result.poses[loc][:, :2, 3] - truth[:, :2, 3], axis=1)
+        false = int((err > FALSE_FIX_M).sum())
+    found = [at(b) - at(a) for a, b in result.relocalisations]
+    rel = summary(found)
+    return {"oracle": result.oracle, "oracle_reads": int(result.oracle_reads), "first_fix_m": first,
+            "relocalisations": len(found), "false_fixes": false,
+            "relocalise_m": {"median": rel["median"], "max": float(max(found)) if found else None}}
+
+
+def _fmt(v: float) -> str:
+    return "nan" if not np.isfinite(v) else f"{v:.6f}"
+
+
+def write_frames_csv(path: Path, result: ReplayResult, ev) -> None:
+    lines = [",".join(FRAMES_COLUMNS)]
+    for i, t in enumerate(result.times):
+        lines.append(",".join([f"{t:.6f}", str(int(result.places[i])), str(int(result.detections[i])),
+                               str(int(result.inliers[i])), str(int(result.localised[i])),
+                               _fmt(ev.lateral_m[i]), _fmt(ev.heading_deg[i]),
+                               _fmt(result.distance_since_localisation[i])]))
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_frames_csv(path) -> dict:
+    """``frames.csv`` as ``{column: (N,) float array}``; a :class:`DataError` naming the file and line when
+    a column of :data:`FRAMES_COLUMNS` is missing or a value is not a number."""
+    path = Path(path)
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            reader = csv.reader(fh)
+            header = next(reader, None)
+            if header is None:
+                raise DataError(path, "empty file")
+            header = [h.strip() for h in header]
+            missing = [c for c in FRAMES_COLUMNS if c not in header]
+            if missing:
+                raise DataError(path, f"missing column(s) {missing}; expected {list(FRAMES_COLUMNS)}", line=1)
+            cols = {h: [] for h in header}
+            for ln, row in enumerate(reader, start=2):
+                if not row:
+                    continue
+                if len(row) != len(header):
+                    raise DataError(path, f"expected {len(header)} values, got {len(row)}", line=ln)
+                for h, v in zip(header, row):
+                    try:
+                        cols[h].append(float(v))
+                    except ValueError:
+                        raise DataError(path, f"column {h!r}: {v!r} is not a number", line=ln) from None
+    except UnicodeDecodeError as exc:
+        raise DataError(path, f"not UTF-8 text: {exc}") from None
+    return {h: np.asarray(v, dtype=float) for h, v in cols.items()}
+
+
+def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_m: float | None = None,
+                  figure: bool = True) -> dict:
+    """Write trajectory.tum, frames.csv, metrics.json (and trajectory.png) into ``out``; return the metrics."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    metrics, ev = compute_metrics(result, store, max_path_distance_m)
+    # without INS/GPS there is no pose before the first fix: those frames have none
+    write_tum(out / "trajectory.tum", result.times[result.valid], result.poses[result.valid])
+    write_frames_csv(out / "frames.csv", result, ev)
+    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+    if figure:
+        from .plots import plot_trajectory
+
+        plot_trajectory(out / "trajectory.png", result, store, ev, metrics)
+    return metrics
