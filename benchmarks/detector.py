@@ -40,7 +40,6 @@ def benchmark(map_root, run_root, frames: int = 40, seed: int = 0) -> dict:
     return out
 
 
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="scenesig bench detector",
                                  description="Time bank detection on a run's frames (priors from its INS).")

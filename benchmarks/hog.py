@@ -5,26 +5,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import cv2
 import numpy as np
 
+from benchmarks._timing import median_ms
 from signatures.hog import build_pyramid, fhog
 from surveys.errors import DataError
 
 __all__ = ["main"]
-
-
-def _time(fn, repeat: int = 20) -> float:
-    fn()
-    t = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        t.append(time.perf_counter() - t0)
-    return 1000.0 * float(np.median(t))
-
 
 
 def main(argv=None) -> int:
@@ -41,8 +30,8 @@ def main(argv=None) -> int:
         img = cv2.GaussianBlur(rng.integers(0, 255, (480, 640), dtype=np.uint8), (5, 5), 1.5)
     print(json.dumps({
         "image": list(img.shape[:2]),
-        "hog_ms_per_level": round(_time(lambda: fhog(img)), 2),
-        "hog_pyramid_ms": round(_time(lambda: build_pyramid(img, levels=range(args.levels))), 2),
+        "hog_ms_per_level": round(median_ms(lambda: fhog(img)), 2),
+        "hog_pyramid_ms": round(median_ms(lambda: build_pyramid(img, levels=range(args.levels))), 2),
         "levels": args.levels,
     }))
     return 0

@@ -54,7 +54,6 @@ def benchmark(seconds: float = 60.0, odometry_hz: float = 20.0, localisation_eve
             "ms_per_estimate": 1e3 * t_est / (n - 1)}
 
 
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="scenesig bench posegraph",
                                  description="Time the sliding-window pose graph on a synthetic drive.")

@@ -46,7 +46,6 @@ def benchmark(n_landmarks=300, n_frames=21, path="straight", sigma_px=1.0, n_ran
     }
 
 
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="scenesig bench refine",
                                  description="Synthetic accuracy/speed benchmark of landmark refinement.")

@@ -36,7 +36,6 @@ def benchmark(n_detections=50, repeats=50, outlier_fraction=0.2, backends=("nump
     return out
 
 
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="scenesig bench solver",
                                  description="Benchmark the eq. 10 solver back ends on synthetic problems.")

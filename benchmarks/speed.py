@@ -29,6 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from benchmarks._timing import median_ms
 from signatures import hog as hogmod
 from signatures import mining
 from signatures.bank import Bank
@@ -67,16 +68,6 @@ def _blas_info() -> dict:
     return out
 
 
-def _median_ms(fn, repeat: int) -> float:
-    fn()
-    ts = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return 1000.0 * float(np.median(ts))
-
-
 def _bank_of(bank: Bank, n: int, rng) -> Bank:
     idx = rng.choice(len(bank), size=n, replace=len(bank) < n)
     return Bank([bank.classifiers[i] for i in np.sort(idx)], bank.image_size)
@@ -96,7 +87,7 @@ def run_speed_bench(n_images: int = 31, repeat: int = 10, seed: int = 0, progres
         cv2.setNumThreads(1)
         with threadpool_limits(limits=1):
             gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-            out["hog_ms_per_level"] = round(_median_ms(lambda: hogmod.fhog(gray), repeat * 2), 2)
+            out["hog_ms_per_level"] = round(median_ms(lambda: hogmod.fhog(gray), repeat * 2), 2)
             t0 = time.perf_counter()
             bank, stats = mining.mine_place(images, offsets, n_jobs=1, rng=seed, progress=progress)
             out["train_seconds_per_place"] = round(time.perf_counter() - t0, 2)
@@ -109,17 +100,17 @@ def run_speed_bench(n_images: int = 31, repeat: int = 10, seed: int = 0, progres
         with threadpool_limits(limits=1):
             lv = banks[50].levels()
             out["hog_pyramid_levels"] = lv
-            out["hog_pyramid_ms"] = round(_median_ms(
+            out["hog_pyramid_ms"] = round(median_ms(
                 lambda: hogmod.build_pyramid(frame, bank.hog, levels=lv), repeat), 2)
         # ---------------- two cores: detection
         cv2.setNumThreads(2)
         with threadpool_limits(limits=2):
             det, detw = {}, {}
             for n, b in banks.items():
-                det[str(n)] = round(_median_ms(lambda: b.detect(frame), repeat), 2)
+                det[str(n)] = round(median_ms(lambda: b.detect(frame), repeat), 2)
                 nom = np.array([c.nominal_xy for c in b])
                 win = np.concatenate([nom - 40.0, nom + 40.0], axis=1)
-                detw[str(n)] = round(_median_ms(lambda: b.detect(frame, windows=win), repeat), 2)
+                detw[str(n)] = round(median_ms(lambda: b.detect(frame, windows=win), repeat), 2)
             out["detect_ms_per_frame"] = det
             out["detect_hz"] = {k: round(1000.0 / v, 1) for k, v in det.items()}
             out["detect_ms_per_frame_windowed"] = detw

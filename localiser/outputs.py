@@ -20,7 +20,7 @@ from surveys.errors import DataError
 from surveys.io import atomic_write_text
 from surveys.tum import write_tum
 
-from .evaluation import ReferencePath, evaluate
+from .evaluation import ReferencePath, evaluate, summary
 
 if TYPE_CHECKING:
     from .replay import ReplayResult
@@ -100,8 +100,6 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     map_errors = {}
     tmap = map_relative_truth(store, tp) if source == "truth" else None
     if tmap is not None:
-        from .evaluation import summary
-
         evm = _evaluate_valid(result, tt, tmap, store, max_path_distance_m)
         # the map's own error: its places against their truth
         ids = sorted(store.places)
@@ -165,8 +163,6 @@ def _evaluate_valid(result: ReplayResult, truth_times, truth_poses, store: MapSt
         lat[v], hd[v], blind[v] = ev.lateral_m, ev.heading_deg, ev.blind_m
         metrics = ev.metrics
     else:   # never localised: nothing to evaluate but the distance driven
-        from .evaluation import summary
-
         metrics = {"lateral_error_m": summary([]), "heading_error_deg": summary([]), "localised_fraction": 0.0,
                    "failures": int(result.failures), "failures_per_km": None, "blind_fraction_over_20m": None,
                    "distance_m": float(dist[-1]) if n else 0.0, "frames_evaluated": 0}
@@ -181,8 +177,6 @@ def _no_oracle_metrics(result: ReplayResult, ev, truth_times, truth_poses) -> di
     where the map records its places' truth, so the map's own georeferencing error does not count).
     """
     from surveys.geometry import interpolate_poses
-
-    from .evaluation import summary
 
     s = np.asarray(ev.distance_m, float)
 

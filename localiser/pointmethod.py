@@ -9,7 +9,8 @@ Per frame, for the place the localiser chose:
 * **detect** -- the live image's features (upright ORB or SIFT, the strongest ``n_features``;
   :func:`signatures.pointfeatures.extract`), matched to the place's keyframe features
   (:mod:`mapping.pointmap`: those with a triangulated 3D point) by *mutual nearest neighbour* and then
-  the *DAPC* adaptive test of "Multi-Modal Scene Matching Location Algorithm Based on M2Det" (§3.4, eqs. 6-7): keep a mutual match when its best distance is below
+  the *DAPC* adaptive test of "Multi-Modal Scene Matching Location Algorithm Based on M2Det" (§3.4,
+  eqs. 6-7): keep a mutual match when its best distance is below
   its second-best distance minus the mean gap (second - best) over the mutual matches.  No ratio to tune:
   the threshold adapts to how separable this image pair's descriptors are -- which is exactly what
   changes between a sunny map and a night or fog live image.
@@ -75,7 +76,8 @@ def _merge(config: dict | None) -> dict:
 
 def match_to_map(live: PointFeatures, mapf: PointFeatures, filter: str = "dapc", mutual: bool = True,
                  ratio: float = 0.8):
-    """Matches map -> live: mutual nearest neighbours, then DAPC over the mutual pairs (the order of the M2Det scene-matching paper, §3.4).
+    """Matches map -> live: mutual nearest neighbours, then DAPC over the mutual pairs (the order of the M2Det
+    scene-matching paper, §3.4).
 
     Returns
     -------

@@ -4,8 +4,8 @@ Every command lives in :mod:`scenesig.commands` as a module with ``register(grou
 parser to ``groups[""]`` (the top level) or to a group such as ``groups["map"]`` and sets
 ``_run=run`` -- and ``run(args) -> int``.  This file only assembles the parser and owns the one error
 handler: :class:`surveys.errors.DataError` (bad input, named file and line) becomes
-``scenesig: error: ...`` and exit status 2; Ctrl-C exits 130.  Heavy imports (GTSAM, Dask) happen
-inside the command that needs them, so ``scenesig --help`` stays fast.
+``scenesig: error: ...`` and exit status 2; Ctrl-C exits 130, a closed output pipe 141.  Heavy imports
+(GTSAM, Dask) happen inside the command that needs them, so ``scenesig --help`` stays fast.
 """
 from __future__ import annotations
 
@@ -84,6 +84,12 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("scenesig: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # the reader went away (``scenesig ... | head``): stop quietly, as Unix tools do
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
 
 
 if __name__ == "__main__":

@@ -59,7 +59,6 @@ default_config = {
 }
 
 
-
 def _merge(config: dict | None) -> dict:
     cfg = merge_settings(default_config, config, "experiment", open=("point",))
     bad = [m for m in cfg["methods"] if m not in ("signatures", "orb", "sift")]
