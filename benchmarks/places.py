@@ -129,7 +129,8 @@ def recall_at(scores: np.ndarray, truth: np.ndarray, tolerance: int, max_n: int)
     """recall@N, N = 1..max_n: the share of queries with a place within ``tolerance`` among the N best."""
     order = np.argsort(-scores, axis=1, kind="stable")[:, :max_n]
     hit = np.abs(order - truth[:, None]) <= tolerance
-    return np.cumsum(hit, axis=1).clip(max=1).mean(axis=0)
+    rec = np.cumsum(hit, axis=1).clip(max=1).mean(axis=0)
+    return np.concatenate([rec, np.full(max_n - len(rec), rec[-1] if len(rec) else 0.0)])   # N beyond the places
 
 
 # ---------------------------------------------------------------------------------- methods
