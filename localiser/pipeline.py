@@ -309,7 +309,6 @@ class Localiser:
         self.lost = oracle is None
         self.first_fix_time: float | None = None
         self.lost_time: float | None = None
-        self._lost_cum = 0.0
         self.relocalisations: list[tuple[float, float]] = []
         self._fix_cov = np.diag(np.asarray(cfg["fix_sigma"], float) ** 2)
         # Dead reckoning on its own (the odometry source's arbitrary frame): the relocaliser's
@@ -398,11 +397,6 @@ class Localiser:
             self.lost, self.lost_time = False, None
 
     @property
-    def distance_since_lost(self) -> float:
-        """Odometry distance since the localiser declared itself lost (0 when it is not)."""
-        return self._cum - self._lost_cum if self.lost and self.lost_time is not None else 0.0
-
-    @property
     def distance_since_localisation(self) -> float:
         """Odometry distance (m) since the last localisation or reset."""
         return self._cum - self._fix
@@ -450,7 +444,7 @@ class Localiser:
             self.failures += 1
             self.reset_times.append(float(t))
             if self.oracle is None:
-                self.lost, self.lost_time, self._lost_cum = True, float(t), self._cum
+                self.lost, self.lost_time = True, float(t)
             else:
                 self._reset(t)
             return True

@@ -24,7 +24,7 @@ detection until it covers the whole map.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -138,7 +138,7 @@ class _Fix:
     cov: np.ndarray
     inliers: int
     d: float = 0.0     # odometry distance of the localiser at t
-    extra: dict = field(default_factory=dict)
+    measurement: Measurement | None = None
 
 
 class Relocaliser:
@@ -200,9 +200,8 @@ class Relocaliser:
         shortlist = self.retrieval.rank(raw, cands)[:max(1, int(cfg["shortlist"]))]
         ms_ret = 1e3 * (time.perf_counter() - t0)
         self.ms_retrieval.append(ms_ret)
-        best: Measurement | None = None
-        best_place = shortlist[0] if shortlist else self.loc.nearest_place(self.loc.estimate(t)) \
-            if self.loc.has_estimate else int(min(self.store.places))
+        best: Measurement | None = None        # the most inliers: what the frame records when nothing is accepted
+        best_place = shortlist[0] if shortlist else int(min(self.store.places))
         ms_det = ms_solve = 0.0
         verified: list[_Fix] = []
         d_now = self.loc.distance_at(t)
@@ -221,7 +220,7 @@ class Relocaliser:
                 best, best_place = m, p
             if m.constraint is not None and m.inliers >= cfg["verify_min_inliers"]:
                 k = m.constraint
-                verified.append(_Fix(float(t), p, k.T_world_vehicle, k.covariance, int(m.inliers), d_now))
+                verified.append(_Fix(float(t), p, k.T_world_vehicle, k.covariance, int(m.inliers), d_now, m))
         if best is None:
             best = Measurement(None, reason="no_candidate")
         accepted = False
@@ -231,7 +230,7 @@ class Relocaliser:
                 if self._consistent_history(f):
                     self.loc.fix(f.t, f.T, f.cov)
                     self._fixes.clear()
-                    best, best_place, accepted = self._as_measurement(f, best), f.place, True
+                    best, best_place, accepted = f.measurement, f.place, True
                     break
             if not accepted:
                 self._fixes.extend(verified)
@@ -243,11 +242,6 @@ class Relocaliser:
         if not accepted and best.constraint is not None:
             best.reason = "awaiting_sequence" if verified else (best.reason or "too_few_inliers")
         return SearchResult(best, int(best_place), accepted, len(verified), len(shortlist), ms_ret, ms_det, ms_solve)
-
-    @staticmethod
-    def _as_measurement(f: _Fix, m: Measurement) -> Measurement:
-        return Measurement(m.constraint, m.detections, f.inliers, None, m.ms_detect, m.ms_solve, True,
-                           {**m.extra, "global": True})
 
     def _prune(self, d_now: float) -> None:
         w = self.config["sequence_window_m"]
