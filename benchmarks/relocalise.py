@@ -28,14 +28,17 @@ __all__ = ["measure", "main"]
 
 
 class _Tiled:
-    """A :class:`localiser.relocalise.PlaceRetrieval` whose places are repeated ``k`` times."""
+    """A :class:`localiser.relocalise.PlaceRetrieval` whose places are repeated up to ``n_places``."""
 
-    def __init__(self, base, k: int):
-        self.base, self.k = base, int(k)
+    def __init__(self, base, n_places: int):
+        self.base = base
         n = len(base.ids)
-        self.D = np.tile(base.D, (self.k, 1))
-        self.owner = np.concatenate([base.owner + r * n for r in range(self.k)])
-        self.n = n * self.k
+        k = int(np.ceil(n_places / n))
+        owner = np.concatenate([base.owner + r * n for r in range(k)])
+        keep = owner < n_places                        # exactly n_places places
+        self.D = np.tile(base.D, (k, 1))[keep]
+        self.owner = owner[keep]
+        self.n = int(n_places)
 
     def rank(self, image):
         from localiser.detector import blas_threads
@@ -65,7 +68,7 @@ def measure(map_root, run_root, places=(30, 100, 300), frames: int = 20, shortli
     out = {}
     try:
         for n in places:
-            tiled = _Tiled(base, int(np.ceil(n / len(base.ids))))
+            tiled = _Tiled(base, int(n))
             ret, ver = [], []
             for img in images:
                 t0 = time.perf_counter()
