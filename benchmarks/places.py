@@ -283,7 +283,7 @@ def _signatures(ds, pr: Protocol, cfg: dict, jobs: int = 1, progress: bool = Tru
             _, inl = heading.vote_displacement(votes, w, window)
             verified[int(p)] = float(w[inl].sum() / w.sum()) if w.sum() > 0 else 0.0
         # the shortlist by verification first, then everything else by descriptor
-        for rank, p in enumerate(order):
+        for p in order:
             S[qi, p] = (2.0 + verified[int(p)]) if int(p) in verified else desc[p]
     return S, time.perf_counter() - t0, t_map
 

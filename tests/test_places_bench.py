@@ -2,7 +2,6 @@
 import json
 
 import numpy as np
-import pytest
 
 from benchmarks.places import protocols, recall_at, run_benchmark
 
