@@ -270,7 +270,8 @@ class Detector:
 
     # ------------------------------------------------------------------------ detection
     def detect(self, image: np.ndarray, place: int, T_place_vehicle: np.ndarray | None = None,
-               P_prior: np.ndarray | None = None, whole_image: bool = False) -> Observation:
+               P_prior: np.ndarray | None = None, whole_image: bool = False,
+               max_classifiers: int | None = None) -> Observation:
         """Detect the place's signatures in an image.
 
         Parameters
@@ -279,11 +280,13 @@ class Detector:
         place : place index.
         T_place_vehicle, P_prior : motion prior and its covariance; without them (or with
             ``whole_image``) every classifier searches the whole image.
+        max_classifiers : a whole-image search runs only this many classifiers, those of highest
+            mining quality (global localisation verifies several places per frame; None: all).
         """
         with limit_blas_threads(self.config["blas_threads"]):
-            return self._detect(image, place, T_place_vehicle, P_prior, whole_image)
+            return self._detect(image, place, T_place_vehicle, P_prior, whole_image, max_classifiers)
 
-    def _detect(self, image, place, T_place_vehicle, P_prior, whole_image) -> Observation:
+    def _detect(self, image, place, T_place_vehicle, P_prior, whole_image, max_classifiers=None) -> Observation:
         t0 = time.perf_counter()
         lp = self.place(place)
         data, bank = lp.data, lp.bank
@@ -298,6 +301,9 @@ class Detector:
         if wide:
             sel = np.arange(n)
             windows = None
+            if max_classifiers is not None and n > int(max_classifiers):
+                q = np.array([bank.classifiers[k].quality for k in ids], dtype=float)
+                sel = np.sort(np.argsort(-np.nan_to_num(q, nan=-np.inf), kind="stable")[:int(max_classifiers)])
         else:
             win, ok, _ = search_windows(data.landmarks, data.covariances, T_place_vehicle, P_prior, self.camera,
                                         self.T_vehicle_camera, self.Q, self.config)

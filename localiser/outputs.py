@@ -27,15 +27,18 @@ from .evaluation import ReferencePath, evaluate, summary
 if TYPE_CHECKING:
     from .replay import ReplayResult
 
-__all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "reference_path", "map_relative_truth", "compute_metrics",
-           "write_frames_csv", "read_frames_csv", "write_outputs", "detection_rates",
-           "read_output_files", "read_localisation"]
+__all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "FALSE_FIX_M", "reference_path", "map_relative_truth", "compute_metrics",
+           "write_frames_csv", "read_frames_csv", "write_outputs", "detection_rates", "read_output_files",
+           "read_localisation"]
 
 #: Columns of ``frames.csv``.
 FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
                   "distance_since_localisation")
 #: ``metrics.json`` entries that measure the machine rather than the result (they differ between runs).
-TIMING_KEYS = ("ms_per_detection", "ms_per_solve", "ms_per_odometry_update", "realtime_factor", "wall_seconds")
+TIMING_KEYS = ("ms_per_detection", "ms_per_solve", "ms_per_odometry_update", "ms_per_retrieval", "realtime_factor",
+               "wall_seconds")
+#: Accepted localisations further than this from the truth are ``false_fixes`` (metres).
+FALSE_FIX_M = 5.0
 
 
 def reference_path(store: MapStore) -> ReferencePath:
@@ -76,8 +79,11 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     ``failures`` (oracle resets), ``failures_per_km``, ``blind_fraction_over_20m``; where the map
     records its places' truth (simulated maps) also ``lateral_error_map_m``, ``heading_error_map_deg``
     (the same errors relative to the map, see :func:`map_relative_truth`) and
-    ``map_georeference_error_m`` (how far the map's places are from their truth); timings
-    ``ms_per_detection``, ``ms_per_solve``, ``ms_per_odometry_update``, ``realtime_factor`` (data
+    ``map_georeference_error_m`` (how far the map's places are from their truth); localising without
+    INS/GPS (:func:`_no_oracle_metrics`): ``oracle``, ``oracle_reads``, ``first_fix_m``,
+    ``relocalisations``, ``false_fixes``, ``relocalise_m`` (errors and coverage then count from the first
+    fix on); timings ``ms_per_detection``, ``ms_per_solve``, ``ms_per_odometry_update``,
+    ``ms_per_retrieval`` (global search only), ``realtime_factor`` (data
     duration / wall time of the replay), ``wall_seconds``; bookkeeping ``mode``, ``every``,
     ``distance_m``, ``duration_s``, ``frames``, ``frames_evaluated``, ``detector_frames``,
     ``localisations``, ``truth_source``, ``map``, ``map_generation`` (lifelong updates), ``run_path``
@@ -96,23 +102,20 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         tt, tp, source = run.groundtruth_times, run.groundtruth_poses, "groundtruth"
     else:
         raise DataError(run.root or Path(run.name), "no truth.tum or groundtruth.tum to evaluate against")
-    ev = evaluate(result.times, result.poses, tt, tp, reference_path(store), result.localised, result.resets,
-                  max_path_distance_m=max_path_distance_m)
+    ev = _evaluate_valid(result, tt, tp, store, max_path_distance_m)
     m = ev.metrics
     tm = result.timings
     map_errors = {}
-    if source == "truth":
-        tmap = map_relative_truth(store, tp)
-        if tmap is not None:
-            evm = evaluate(result.times, result.poses, tt, tmap, reference_path(store), result.localised,
-                           result.resets, max_path_distance_m=max_path_distance_m)
-            # the map's own error: its places against their truth
-            ids = sorted(store.places)
-            off = [np.linalg.norm(store.places[i].T_world_place[:2, 3] - np.asarray(store.places[i].extra["T_truth_place"])[:2, 3])
-                   for i in ids]
-            map_errors = {"lateral_error_map_m": evm.metrics["lateral_error_m"],
-                          "heading_error_map_deg": evm.metrics["heading_error_deg"],
-                          "map_georeference_error_m": summary(off)}
+    tmap = map_relative_truth(store, tp) if source == "truth" else None
+    if tmap is not None:
+        evm = _evaluate_valid(result, tt, tmap, store, max_path_distance_m)
+        # the map's own error: its places against their truth
+        ids = sorted(store.places)
+        off = [np.linalg.norm(store.places[i].T_world_place[:2, 3] - np.asarray(store.places[i].extra["T_truth_place"])[:2, 3])
+               for i in ids]
+        map_errors = {"lateral_error_map_m": evm.metrics["lateral_error_m"],
+                      "heading_error_map_deg": evm.metrics["heading_error_deg"],
+                      "map_georeference_error_m": summary(off)}
     metrics = {
         "method": result.method,
         "run": run.name,
@@ -123,10 +126,12 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         "failures": int(result.failures),
         "failures_per_km": m["failures_per_km"],
         "blind_fraction_over_20m": m["blind_fraction_over_20m"],
+        **_no_oracle_metrics(result, ev, tt, tp if tmap is None else tmap),
         **map_errors,
         "ms_per_detection": tm.get("ms_per_detection"),
         "ms_per_solve": tm.get("ms_per_solve"),
         "ms_per_odometry_update": tm.get("ms_per_odometry_update"),
+        "ms_per_retrieval": tm.get("ms_per_retrieval"),
         "realtime_factor": tm.get("realtime_factor"),
         "wall_seconds": tm.get("wall_seconds"),
         "mode": result.mode,
@@ -161,6 +166,64 @@ def detection_rates(detections, inliers) -> dict:
     k = np.asarray(inliers, dtype=float)
     return {"detections_per_frame_mean": float(d.mean()) if d.size else None,
             "inliers_per_detection_mean": float(k.sum() / d.sum()) if d.sum() > 0 else None}
+
+
+def _evaluate_valid(result: ReplayResult, truth_times, truth_poses, store: MapStore, max_path_distance_m):
+    """:func:`localiser.evaluation.evaluate` over the frames with a world pose (all of them with an oracle;
+    from the first fix on without one), its per-frame series put back on every frame (NaN elsewhere)."""
+    from surveys.geometry import interpolate_poses
+
+    from .evaluation import EvaluationResult, travelled
+
+    v = np.asarray(result.valid, bool)
+    if v.all():
+        return evaluate(result.times, result.poses, truth_times, truth_poses, reference_path(store), result.localised,
+                        result.resets, max_path_distance_m=max_path_distance_m)
+    n = len(result.times)
+    dist = travelled(interpolate_poses(truth_times, truth_poses, result.times).reshape(-1, 4, 4)[:, :3, 3])
+    lat, hd, blind = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+    if v.sum() >= 2:
+        ev = evaluate(result.times[v], result.poses[v], truth_times, truth_poses, reference_path(store),
+                      result.localised[v], result.resets[v], max_path_distance_m=max_path_distance_m)
+        lat[v], hd[v], blind[v] = ev.lateral_m, ev.heading_deg, ev.blind_m
+        metrics = ev.metrics
+    else:   # never localised: nothing to evaluate but the distance driven
+        metrics = {"lateral_error_m": summary([]), "heading_error_deg": summary([]), "localised_fraction": 0.0,
+                   "failures": int(result.failures), "failures_per_km": None, "blind_fraction_over_20m": None,
+                   "distance_m": float(dist[-1]) if n else 0.0, "frames_evaluated": 0}
+    return EvaluationResult(metrics, lat, hd, blind, dist)
+
+
+def _no_oracle_metrics(result: ReplayResult, ev, truth_times, truth_poses) -> dict:
+    """``oracle``, ``oracle_reads``, ``first_fix_m``, ``relocalisations``, ``false_fixes``, ``relocalise_m``.
+
+    Distances are along the truth (``ev.distance_m``, from the first frame); a false fix is an accepted
+    localisation whose estimate is more than :data:`FALSE_FIX_M` from the truth (relative to the map
+    where the map records its places' truth, so the map's own georeferencing error does not count).
+    """
+    from surveys.geometry import interpolate_poses
+
+    s = np.asarray(ev.distance_m, float)
+
+    def at(t):
+        return float(np.interp(t, result.times, s)) if len(s) else 0.0
+
+    first = None
+    if result.oracle == "ins":
+        first = 0.0
+    elif result.first_fix_time is not None:
+        first = at(result.first_fix_time) - (float(s[0]) if len(s) else 0.0)
+    loc = np.asarray(result.localised, bool) & np.asarray(result.valid, bool)
+    false = 0
+    if loc.any():
+        truth = interpolate_poses(truth_times, truth_poses, result.times[loc]).reshape(-1, 4, 4)
+        err = np.linalg.norm(result.poses[loc][:, :2, 3] - truth[:, :2, 3], axis=1)
+        false = int((err > FALSE_FIX_M).sum())
+    found = [at(b) - at(a) for a, b in result.relocalisations]
+    rel = summary(found)
+    return {"oracle": result.oracle, "oracle_reads": int(result.oracle_reads), "first_fix_m": first,
+            "relocalisations": len(found), "false_fixes": false,
+            "relocalise_m": {"median": rel["median"], "max": float(max(found)) if found else None}}
 
 
 def _fmt(v: float) -> str:
@@ -213,7 +276,8 @@ def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_
     out = Path(out)
     make_dirs(out)
     metrics, ev = compute_metrics(result, store, max_path_distance_m)
-    write_tum(out / "trajectory.tum", result.times, result.poses)
+    # without INS/GPS there is no pose before the first fix: those frames have none
+    write_tum(out / "trajectory.tum", result.times[result.valid], result.poses[result.valid])
     write_frames_csv(out / "frames.csv", result, ev)
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     if figure:
@@ -226,7 +290,8 @@ def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_
 def read_output_files(folder):
     """``(metrics, frames, times, poses)`` of a localise output folder: ``metrics.json`` (a dict with at
     least ``method`` and ``run``), ``frames.csv`` (:func:`read_frames_csv`) and ``trajectory.tum``
-    (one pose per frame, at the frames' times); DataError naming the file if one is missing or wrong."""
+    (one pose per frame, at the frames' times; with ``--oracle none`` the frames before the first fix have
+    no pose and get NaN); DataError naming the file if one is missing or wrong."""
     folder = Path(folder)
     mpath = folder / "metrics.json"
     if not mpath.is_file():
@@ -246,8 +311,14 @@ def read_output_files(folder):
         raise DataError(tpath, "missing")
     times, poses = read_tum(tpath)
     n = len(frames["time"])
-    if len(times) != n:
+    if len(times) != n and metrics.get("oracle") != "none":
         raise DataError(tpath, f"{len(times)} poses but frames.csv has {n} frames")
+    if len(times) != n:
+        # without INS/GPS there is no pose before the first fix: the trajectory is a tail of the frames
+        if len(times) > n or (len(times) and np.max(np.abs(times - frames["time"][n - len(times):])) > 1e-3):
+            raise DataError(tpath, f"its {len(times)} poses are not the last frames of frames.csv's {n}")
+        poses = np.concatenate([np.full((n - len(times), 4, 4), np.nan), poses.reshape(-1, 4, 4)])
+        times = np.asarray(frames["time"], float)
     if n and np.max(np.abs(times - frames["time"])) > 1e-3:
         raise DataError(tpath, "times differ from frames.csv's")
     return metrics, frames, times, poses

@@ -38,7 +38,6 @@ from surveys.settings import merge_settings
 from surveys.geometry import Camera, invert
 
 from .detector import Detector, Observation
-from .detector import default_config as detector_default
 from .posegraph import PoseGraph
 from .se2 import PlaneSnapper
 from .solver import LocalisationConstraint, solve
@@ -63,6 +62,9 @@ default_config = {
     "failure_distance_m": 20.0,      # McManus et al. 2015, §4.3
     "lost_after_m": 10.0,            # beyond this distance blind the detector searches the whole image
     "max_heading_diff_deg": 90.0,    # a place passed the other way round is not "nearest"
+    # Without an oracle (``oracle=None``): the covariance of a pose found by global localisation or
+    # relocalisation (the graph restarts from it); the sequence check already vetted it.
+    "fix_sigma": [0.01, 0.01, 0.02, 0.5, 0.5, 0.2],
     "posegraph": {},                 # overrides of localiser.posegraph.default_config
 }
 
@@ -93,6 +95,7 @@ class MotionPrior:
     next_place : the place ahead (to prefetch), or None.
     lost : True when the estimate is not good enough to search around predicted projections.
     distance_since_localisation : odometry distance since the last localisation or reset (m).
+    max_classifiers : global localisation's verification budget per place (methods may ignore it).
     """
 
     t: float
@@ -103,6 +106,7 @@ class MotionPrior:
     next_place: int | None
     lost: bool
     distance_since_localisation: float
+    max_classifiers: int | None = None   # a whole-image search may run only this many (the best) classifiers
 
     @property
     def T_place_vehicle(self) -> np.ndarray:
@@ -235,7 +239,8 @@ class SignatureLocaliser(WeakLocaliser):
 
     def detect(self, image, place, prior: MotionPrior) -> Observation:
         return self.detector.detect(image, place, prior.T_place_vehicle, prior.covariance,
-                                    whole_image=prior.lost or not self.prior_gating)
+                                    whole_image=prior.lost or not self.prior_gating,
+                                    max_classifiers=prior.max_classifiers)
 
     def solve(self, obs: Observation, place, prior: MotionPrior) -> Measurement:
         n = len(obs)
@@ -289,11 +294,23 @@ class Localiser:
     ----------
     store : the map (places and their poses: the keyframes of the SE(2) snapping).
     oracle : ``oracle(t) -> T_world_vehicle``, the run's INS/GPS pose at time t, used to start and to
-        reset after a failure (never to localise).
+        reset after a failure (never to localise); the paper's protocol.  ``None``: no INS/GPS at all --
+        the localiser starts *not localised* and dead-reckons from an arbitrary origin until a pose
+        found from the map (:meth:`fix`, by :class:`localiser.relocalise.Relocaliser`) starts the pose
+        graph; after a failure it declares itself *lost*, keeps dead-reckoning and waits for the next
+        fix (a relocalisation).
     config : overrides of :data:`default_config`.
+
+    Attributes
+    ----------
+    oracle_reads : times the oracle was read (0 without one).
+    failures : oracle resets (with an oracle) or times it declared itself lost (without).
+    lost : True while not localised (before the first fix, or after a failure, without an oracle).
+    first_fix_time : time of the first pose found from the map (without an oracle).
+    relocalisations : ``(t_lost, t_found)`` of every recovery (without an oracle).
     """
 
-    def __init__(self, store: MapStore, oracle: Callable[[float], np.ndarray], config: dict | None = None):
+    def __init__(self, store: MapStore, oracle: Callable[[float], np.ndarray] | None, config: dict | None = None):
         cfg = _merge(config, default_config, "localiser")
         self.config = cfg
         self.store = store
@@ -302,6 +319,17 @@ class Localiser:
         self._place_ids = np.array(sorted(store.places), dtype=int)
         self.snapper = PlaneSnapper(np.stack([store.places[i].T_world_place for i in self._place_ids]))
         self.oracle = oracle
+        self.oracle_reads = 0
+        self.lost = oracle is None
+        self.first_fix_time: float | None = None
+        self.lost_time: float | None = None
+        self.relocalisations: list[tuple[float, float]] = []
+        self._fix_cov = np.diag(np.asarray(cfg["fix_sigma"], float) ** 2)
+        # Dead reckoning on its own (the odometry source's arbitrary frame): the relocaliser's
+        # sequence check compares poses found at different times through it, and without an
+        # oracle it is all there is before the first fix.  A bounded history of cumulative poses.
+        self._odo_t: list[float] = []
+        self._odo_T: list[np.ndarray] = []
         self.graph = PoseGraph(config={**cfg["posegraph"], "failure_distance_m": cfg["failure_distance_m"]})
         self._oracle_cov = np.diag(np.asarray(cfg["oracle_sigma"], float) ** 2)
         self._floor = np.diag(np.asarray(cfg["prior_floor_sigma"], float) ** 2)
@@ -323,23 +351,71 @@ class Localiser:
     def started(self) -> bool:
         return self.graph.initialised
 
+    @property
+    def has_estimate(self) -> bool:
+        """True once there is a world pose (from the oracle or from a fix)."""
+        return self.graph.initialised
+
     def start(self, t: float) -> None:
-        """Initialise from the oracle at time t (not a failure)."""
+        """Initialise from the oracle at time t (not a failure); without an oracle: not localised yet."""
         with self._lock:
-            self._reset(t)
+            self._odo_t, self._odo_T = [float(t)], [np.eye(4)]
+            self._cum_t, self._cum_d = [float(t)], [self._cum]
+            if self.oracle is not None:
+                self._reset(t)
 
     def _reset(self, t: float) -> None:
         T = np.asarray(self.oracle(t), dtype=float)
+        self.oracle_reads += 1
         self.graph.reset(t, T, self._oracle_cov)
         self._fix = self._cum
         self._cum_t, self._cum_d = [float(t)], [self._cum]
+
+    def odometry_pose(self, t: float) -> np.ndarray:
+        """Cumulative dead-reckoned pose at time t in the odometry's own frame (interpolated, clamped)."""
+        from surveys.geometry import interpolate_poses
+
+        with self._lock:
+            ts, Ts = self._odo_t, self._odo_T
+            if not ts:
+                raise RuntimeError("Localiser.start() first")
+            if t <= ts[0]:
+                return Ts[0].copy()
+            if t >= ts[-1]:
+                return Ts[-1].copy()
+            i = bisect.bisect_left(ts, t)
+            return interpolate_poses(np.array(ts[i - 1:i + 1]), np.stack(Ts[i - 1:i + 1]), float(t)).reshape(4, 4)
+
+    def odometry_between(self, t_a: float, t_b: float) -> np.ndarray:
+        """Dead-reckoned motion from time t_a to t_b (``T_{a,b}``)."""
+        return invert(self.odometry_pose(t_a)) @ self.odometry_pose(t_b)
+
+    def fix(self, t: float, T_world_vehicle: np.ndarray, covariance: np.ndarray | None = None) -> None:
+        """A pose found from the map at time t (global localisation or relocalisation): (re)start the graph.
+
+        The graph restarts at the latest odometry time from the fix carried forward by the odometry
+        since; the localiser is localised again (and a recovery from lost is counted).
+        """
+        with self._lock:
+            t_now = self._odo_t[-1]
+            T_now = np.asarray(T_world_vehicle, float) @ self.odometry_between(t, t_now)
+            cov = self._fix_cov if covariance is None else 0.5 * (covariance + covariance.T) + self._floor
+            self.graph.reset(t_now, T_now, cov)
+            self._fix = self.distance_at(t)
+            self._cum_t, self._cum_d = [float(t_now)], [self._cum]
+            self.localisation_times.append(float(t))
+            if self.first_fix_time is None:
+                self.first_fix_time = float(t)
+            elif self.lost_time is not None:
+                self.relocalisations.append((self.lost_time, float(t)))
+            self.lost, self.lost_time = False, None
 
     @property
     def distance_since_localisation(self) -> float:
         """Odometry distance (m) since the last localisation or reset."""
         return self._cum - self._fix
 
-    def _distance_at(self, t: float) -> float:
+    def distance_at(self, t: float) -> float:
         """Cumulative odometry distance at time t (interpolated; clamped to the history)."""
         i = bisect.bisect_left(self._cum_t, t)
         if i >= len(self._cum_t):
@@ -357,7 +433,13 @@ class Localiser:
         cov = odometry_covariance(T_increment, cfg["odometry_sigma_per_sqrt_m"], cfg["odometry_sigma_floor"])
         t0 = time.perf_counter()
         with self._lock:
-            self.graph.add_odometry(t, T_increment, cov)
+            if self.graph.initialised:
+                self.graph.add_odometry(t, T_increment, cov)
+            self._odo_t.append(float(t))
+            self._odo_T.append(self._odo_T[-1] @ np.asarray(T_increment, float))
+            if len(self._odo_t) > 8192:      # the sequence check looks back tens of metres: bounded
+                del self._odo_t[:4096]
+                del self._odo_T[:4096]
             self._cum += float(np.linalg.norm(np.asarray(T_increment)[:3, 3]))
             self._cum_t.append(float(t))
             self._cum_d.append(self._cum)
@@ -368,13 +450,17 @@ class Localiser:
         self.n_odometry += 1
 
     def check_failure(self, t: float) -> bool:
-        """The failure rule: blind for more than ``failure_distance_m`` -> reset from the oracle at t."""
+        """The failure rule: blind for more than ``failure_distance_m`` -> reset from the oracle at t, or,
+        without an oracle, declare itself lost (once; dead reckoning goes on until a relocalisation)."""
         with self._lock:
-            if self.distance_since_localisation <= self.config["failure_distance_m"] + 1e-9:
+            if self.lost or self.distance_since_localisation <= self.config["failure_distance_m"] + 1e-9:
                 return False
-            self._reset(t)
             self.failures += 1
             self.reset_times.append(float(t))
+            if self.oracle is None:
+                self.lost, self.lost_time = True, float(t)
+            else:
+                self._reset(t)
             return True
 
     # ------------------------------------------------------------------------- outputs
@@ -426,9 +512,11 @@ class Localiser:
         if c is None:
             return False
         with self._lock:
+            if self.lost:        # without an oracle only the relocaliser's vetted fixes end "lost"
+                return False
             ok = self.graph.add_localisation(t, c.T_world_vehicle_detections, information=c.information_detections)
             if ok:
-                d = self._distance_at(t)
+                d = self.distance_at(t)
                 # A late localisation (real-time mode) counts from its own time, never backwards.
                 self._fix = max(self._fix, d)
                 self.localisation_times.append(float(t))

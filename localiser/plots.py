@@ -38,9 +38,10 @@ def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metri
     ax.plot(result.poses[:, 0, 3], result.poses[:, 1, 3], "-", color="tab:blue", lw=1, label="estimate")
     loc = result.localised
     ax.plot(result.poses[loc, 0, 3], result.poses[loc, 1, 3], ".", ms=3, color="tab:green", label="localised")
+    what = "reset" if result.oracle == "ins" else "lost"
     if result.resets.any():
         ax.plot(result.poses[result.resets, 0, 3], result.poses[result.resets, 1, 3], "x", color="tab:red", ms=8,
-                mew=2, label=f"reset ({int(result.resets.sum())})")
+                mew=2, label=f"{what} ({int(result.resets.sum())})")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
@@ -65,7 +66,10 @@ def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metri
     tmap = map_relative_truth(store, run.truth_poses) if run.truth_times is not None else None
     if tmap is not None:
         tm = interpolate_poses(run.truth_times, tmap, result.times).reshape(-1, 4, 4)
-        lat_map, _, _ = lateral_heading_errors(result.poses, tm, reference_path(store))
+        lat_map = np.full(len(result.times), np.nan)      # no pose before a first fix without INS/GPS
+        if result.valid.any():
+            lat_map[result.valid] = lateral_heading_errors(result.poses[result.valid], tm[result.valid],
+                                                           reference_path(store))[0]
         bx.plot(s, lat_map, color="tab:purple", lw=1, label="lateral error relative to the map")
     if run.groundtruth_times is not None and run.truth_times is not None:
         ins = interpolate_poses(run.groundtruth_times, run.groundtruth_poses, result.times).reshape(-1, 4, 4)
@@ -75,7 +79,10 @@ def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metri
     for sr in s[result.resets]:
         bx.axvline(sr, color="tab:red", lw=1)
     bx.axhline(0, color="0.5", lw=0.5)
-    bx.set_xlabel("distance travelled (m)  [green: within 10 m of a localisation; red: reset]")
+    if result.oracle != "ins" and result.first_fix_time is not None:
+        bx.axvline(float(np.interp(result.first_fix_time, result.times, s)), color="tab:green", lw=1, ls=":")
+    bx.set_xlabel(f"distance travelled (m)  [green: within 10 m of a localisation; red: {what}"
+                  + ("; dotted: first fix from the map" if result.oracle != "ins" else "") + "]")
     bx.set_ylabel("lateral error (m)")
     bx.legend(loc="best", fontsize=8)
     fig.tight_layout()

@@ -35,11 +35,14 @@ features including the extraction, wherever it ran), ``ms_per_solve`` the solver
 ``realtime_factor`` the data duration over the wall time of the replay loop alone (opening the map
 and the run, the evaluation and writing the outputs are not counted).
 
-The run's INS/GPS poses (``groundtruth.tum``) are the *oracle*: they initialise the localiser and
-reset it after a failure, and are never used to localise.  The exact truth (``truth.tum``) is read
-only by the evaluation.
+The run's INS/GPS poses (``groundtruth.tum``) are the *oracle* (``oracle="ins"``, the paper's
+protocol and the default): they initialise the localiser and reset it after a failure, and are never
+used to localise.  With ``oracle="none"`` the localiser opens neither ``groundtruth.tum`` nor
+``gps.csv``: it finds itself on the map by global localisation and relocalises when lost
+(:mod:`localiser.relocalise`).  The exact truth (``truth.tum``) is read only by the evaluation,
+after the replay.
 
-Command line: ``scenesig localise MAP RUN --out DIR [--method signatures] [--every 4 | --realtime [--speed X]]``.
+Command line: ``scenesig localise MAP RUN --out DIR [--method signatures] [--oracle ins|none] [--every 4 | --realtime [--speed X]]``.
 """
 from __future__ import annotations
 
@@ -63,7 +66,7 @@ from .pipeline import Localiser, Measurement, WeakLocaliser, make_method
 
 log = logging.getLogger(__name__)
 
-__all__ = ["default_config", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
+__all__ = ["default_config", "ORACLES", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
            "localise", "FRAMES_COLUMNS", "TIMING_KEYS"]
 
 log = logging.getLogger(__name__)
@@ -77,9 +80,15 @@ default_config = {
                                  # further behind (CPU load), the oldest waiting samples are composed into
                                  # one increment (exact in pose), so the backlog never grows without bound
     "max_path_distance_m": None,  # frames further than this from the map are left out of the errors
+    "oracle": "ins",             # "ins": start and reset from the run's INS/GPS; "none": no INS/GPS
     "localiser": {},             # overrides of localiser.pipeline.default_config
+    "relocalise": {},            # overrides of localiser.relocalise.default_config (oracle "none")
     "method": {},                # method configuration (e.g. {"detector": {...}, "solver": {...}})
 }
+
+#: Where the localiser's first pose and its recovery after a failure come from.
+ORACLES = ("ins", "none")
+
 
 @dataclass
 class ReplayResult:
@@ -104,6 +113,15 @@ class ReplayResult:
     corrupt: dict = field(default_factory=dict)       # frame -> reason: images that failed strict decoding
     timings: dict = field(default_factory=dict)
     method_config: dict = field(default_factory=dict)  # the method's settings (WeakLocaliser.method_config)
+    oracle: str = "ins"
+    oracle_reads: int = 0
+    valid: np.ndarray | None = None   # (N,) bool: the localiser had a world pose at this frame
+    first_fix_time: float | None = None      # oracle "none": the first pose found from the map
+    relocalisations: list = field(default_factory=list)  # oracle "none": (t_lost, t_found) pairs
+
+    def __post_init__(self):
+        if self.valid is None:
+            self.valid = np.ones(len(self.times), dtype=bool)
 
 
 def _oracle(run: SurveyRun):
@@ -174,6 +192,7 @@ class _Recorder:
         self.localised = np.zeros(n, dtype=bool)
         self.detector_ran = np.zeros(n, dtype=bool)
         self.distance = np.zeros(n)
+        self.valid = np.zeros(n, dtype=bool)
         self.reasons: list = [None] * n
         self.ms_detect: list[float] = []
         self.ms_solve: list[float] = []
@@ -189,9 +208,15 @@ class _Recorder:
         log.warning("skipped frame %d: %s", i, exc)
 
     def pose(self, i: int, loc: Localiser, t: float) -> None:
+        if not loc.has_estimate:          # no oracle and no fix yet: not localised, no world pose
+            with self.lock:
+                self.poses[i] = np.nan
+                self.distance[i] = loc.distance_since_localisation
+            return
         T = loc.estimate(t)
         with self.lock:
             self.poses[i] = T
+            self.valid[i] = True
             self.distance[i] = loc.distance_since_localisation
             if self.places[i] < 0:
                 self.places[i] = loc.nearest_place(T)
@@ -251,11 +276,17 @@ class _FramePrefetcher:
         self._pool.shutdown(wait=True)
 
 
+def _search(reloc, run: SurveyRun, i: int, t: float, img, rec: _Recorder, ms_prepare: float) -> None:
+    """Global search for frame i (not localised, no oracle): retrieval, verification, sequence check."""
+    raw = img if isinstance(img, np.ndarray) else run.image(i, gray=True)
+    r = reloc.search(img, t, raw)
+    rec.measurement(i, r.place, r.measurement, r.accepted, ms_prepare + r.ms_retrieval + r.ms_detect, r.ms_solve)
+
+
 def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t: float, rec: _Recorder,
-                frames: _FramePrefetcher | None = None) -> None:
-    """Detector + solver for frame i at time t (deterministic mode: inline)."""
-    prior = loc.prior(t)
-    method.prefetch(prior.next_place)
+                frames: _FramePrefetcher | None = None, reloc=None) -> None:
+    """Detector + solver for frame i at time t (deterministic mode: inline); the global search instead
+    while a localiser without an oracle is not localised."""
     try:
         if frames is not None:
             img, ms_prepare = frames.get(i)
@@ -264,6 +295,11 @@ def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t
     except CorruptImageError as exc:
         rec.corrupt_frame(i, exc)
         return
+    if reloc is not None and loc.lost:
+        _search(reloc, run, i, t, img, rec, ms_prepare)
+        return
+    prior = loc.prior(t)
+    method.prefetch(prior.next_place)
     t0 = time.perf_counter()
     obs = method.detect(img, prior.place, prior)      # an image or its prepare() result
     t1 = time.perf_counter()
@@ -273,7 +309,7 @@ def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t
     rec.measurement(i, prior.place, m, accepted, ms_prepare + 1e3 * (t1 - t0), 1e3 * (t2 - t1))
 
 
-def _deterministic(method, loc, run, rec, every, progress, prefetch=True):
+def _deterministic(method, loc, run, rec, every, progress, prefetch=True, reloc=None):
     from tqdm import tqdm
 
     ft = rec.times
@@ -289,7 +325,7 @@ def _deterministic(method, loc, run, rec, every, progress, prefetch=True):
     def frame(i):
         t = max(float(ft[i]), t_start)       # frames before the first odometry: at the start pose
         if i % every == 0:
-            _run_method(method, loc, run, i, t, rec, frames)
+            _run_method(method, loc, run, i, t, rec, frames, reloc)
         rec.pose(i, loc, t)
         bar.update(1)
 
@@ -309,7 +345,7 @@ def _deterministic(method, loc, run, rec, every, progress, prefetch=True):
         bar.close()
 
 
-def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10):
+def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=None):
     from tqdm import tqdm
 
     ft = rec.times
@@ -324,13 +360,17 @@ def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10):
         try:
             while (i := frames_box.get()) is not None:
                 t = max(float(ft[i]), t_start)
-                prior = loc.prior(t)
-                method.prefetch(prior.next_place)
                 try:
                     img = run.image(i, gray=not method.color)
                 except CorruptImageError as exc:
                     rec.corrupt_frame(i, exc)
                     continue
+                if reloc is not None and loc.lost:
+                    # not localised: the whole search (retrieval, verification, sequence check) here
+                    _search(reloc, run, i, t, img, rec, 0.0)
+                    continue
+                prior = loc.prior(t)
+                method.prefetch(prior.next_place)
                 t0 = time.perf_counter()
                 obs = method.detect(img, prior.place, prior)   # detect() runs prepare() itself
                 solve_box.put((i, t, prior, obs, 1e3 * (time.perf_counter() - t0)))
@@ -412,20 +452,27 @@ def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10):
 
 def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signatures", every: int = 4,
            realtime: bool = False, speed: float = 1.0, config: dict | None = None,
-           progress: bool = False) -> ReplayResult:
+           progress: bool = False, oracle: str | None = None, retrieval=None) -> ReplayResult:
     """Localise one run against a map.
 
     Parameters
     ----------
     store : the map.
-    run : the live run (needs odometry and INS/GPS poses; truth only for the metrics).
+    run : the live run (needs odometry, and INS/GPS poses with ``oracle="ins"``; truth only for the
+        metrics).
     method : a :class:`WeakLocaliser` or a registered method name.
     every : deterministic mode: detector on every ``every``-th frame.
     realtime : threads and mailboxes, paced by the data timestamps (``speed`` times faster).
-    config : overrides of :data:`default_config` (``localiser`` and ``method`` sub-dicts).
+    config : overrides of :data:`default_config` (``localiser``, ``method``, ``relocalise`` sub-dicts).
     progress : show a tqdm bar.
+    oracle : ``"ins"`` or ``"none"`` (default: ``config["oracle"]``, else ``"ins"``).
+    retrieval : the coarse place retrieval for ``oracle="none"`` (default: the map's descriptors,
+        :class:`localiser.relocalise.PlaceRetrieval`).
     """
-    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method"))
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
+    oracle = oracle or cfg["oracle"]
+    if oracle not in ORACLES:
+        raise ValueError(f"oracle must be one of {ORACLES}, got {oracle!r}")
     every = int(every)
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
@@ -435,15 +482,20 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     own = isinstance(method, str)
     if own:
         method = make_method(method, store, run.camera, run.T_vehicle_camera, cfg["method"] or None)
-    loc = Localiser(store, _oracle(run), cfg["localiser"] or None)
+    loc = Localiser(store, _oracle(run) if oracle == "ins" else None, cfg["localiser"] or None)
+    reloc = None
+    if oracle == "none":
+        from .relocalise import Relocaliser
+
+        reloc = Relocaliser(store, method, loc, cfg["relocalise"] or None, retrieval=retrieval)
     rec = _Recorder(run)
     extra = {}
     wall0 = time.perf_counter()
     try:
         if realtime:
-            extra = _realtime(method, loc, run, rec, float(speed), progress, int(cfg["odometry_queue"]))
+            extra = _realtime(method, loc, run, rec, float(speed), progress, int(cfg["odometry_queue"]), reloc)
         else:
-            _deterministic(method, loc, run, rec, every, progress, bool(cfg["prefetch"]))
+            _deterministic(method, loc, run, rec, every, progress, bool(cfg["prefetch"]), reloc)
     finally:
         if own:
             method.close()
@@ -463,10 +515,14 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
         "duration_s": duration,
         **extra,
     }
+    if reloc is not None and reloc.ms_retrieval:
+        timings["ms_per_retrieval"] = float(np.mean(reloc.ms_retrieval))
+        timings["global_searches"] = int(reloc.searches)
     return ReplayResult(run, method.name, "realtime" if realtime else "deterministic", None if realtime else every,
                         rec.times, rec.poses, rec.places, rec.detections, rec.inliers, rec.localised, resets,
                         rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times),
-                        dict(sorted(rec.corrupt.items())), timings, _json_safe(method.method_config()))
+                        dict(sorted(rec.corrupt.items())), timings, _json_safe(method.method_config()),
+                        oracle, loc.oracle_reads, rec.valid.copy(), loc.first_fix_time, list(loc.relocalisations))
 
 
 def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
@@ -486,14 +542,26 @@ def _json_safe(obj):
 
 
 def localise(map_root, run_root, out, method: str = "signatures", every: int = 4, realtime: bool = False,
-             speed: float = 1.0, config: dict | None = None, progress: bool = True, figure: bool = True) -> dict:
-    """Open the map and the run, replay, write the outputs; returns ``metrics.json``'s content."""
+             speed: float = 1.0, config: dict | None = None, progress: bool = True, figure: bool = True,
+             oracle: str | None = None) -> dict:
+    """Open the map and the run, replay, write the outputs; returns ``metrics.json``'s content.
+
+    With ``oracle="none"`` the localiser's run is read without ``groundtruth.tum``, ``gps.csv`` and
+    ``truth.tum``; the truth is read for the evaluation after the replay.
+    """
+    import dataclasses
+
     store = MapStore.open(map_root)
-    run = read_run(run_root)
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
+    oracle = oracle or cfg["oracle"]
+    blind = oracle == "none"
+    run = read_run(run_root, skip=("groundtruth", "gps", "truth") if blind else ())
     _warn_weak_places(store, run)
-    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method"))
     result = replay(store, run, method, every=every, realtime=realtime, speed=speed, config=config,
-                    progress=progress)
+                    progress=progress, oracle=oracle)
+    if blind:       # the evaluation's truth, read only now
+        truth = read_run(run_root, check_images=False, skip=("groundtruth", "gps"))
+        result.run = dataclasses.replace(run, truth_times=truth.truth_times, truth_poses=truth.truth_poses)
     return write_outputs(result, store, out, cfg["max_path_distance_m"], figure=figure)
 
 

@@ -22,7 +22,11 @@ For each place (every 10 m along the reference run):
    the manifest; ``extra["georeference"]`` records the runs used, their spread and the correction.
    ``config["georeference"]["method"] = "reference"`` keeps the paper's reference-INS poses;
 5. the kept classifiers, their landmarks (place frame) and covariances go to the map store (the
-   per-run georeferencing observations in the place file's meta, so a resumed build recombines them).
+   per-run georeferencing observations in the place file's meta, so a resumed build recombines them);
+6. *place descriptors* -- a compact whole-image descriptor of every training image of the place
+   (:mod:`signatures.globaldesc`), so a localiser without GPS can retrieve the places a live image
+   may show (:mod:`localiser.relocalise`); kept in the place file's meta and copied into the
+   manifest (``extra["descriptor"]``), where the localiser reads all of them without opening a place.
 
 Places are independent, so they build in parallel: joblib locally, or a Dask distributed cluster with
 ``--scheduler``.  The driver process alone writes the map (:class:`mapping.store.MapWriter`), so an
@@ -47,6 +51,7 @@ from surveys.settings import merge_settings
 from surveys.geometry import invert
 from surveys.run import SurveyRun
 from signatures.augment import augment
+from signatures import globaldesc
 from signatures.mining import mine_place
 from signatures.bank import default_config as bank_default_config
 from signatures.hog import level_scale
@@ -94,6 +99,7 @@ default_config = {
     "min_images": MIN_IMAGES,
     "max_frames_per_run": MAX_FRAMES_PER_RUN,
     "augment_shift_px": 8.0,      # max left/right shift of an augmented copy (a small heading change)
+    "descriptor": {},             # overrides of signatures.globaldesc.default_config (place retrieval)
 }
 
 
@@ -384,7 +390,9 @@ def _build_place(place, views, negatives, config):
         points=points,
         meta={"reference_run": ref.run.name, "reference_frame": int(ref.frame),
               "training_runs": [v.run.name for v in views], "detections_at_reference": [[float(v) if np.isfinite(v) else None for v in b] for b in boxes],
-              "mined": int(n), "kept": int(len(keep)), "georef": georef_obs},
+              "mined": int(n), "kept": int(len(keep)), "georef": georef_obs,
+              # one whole-image descriptor per training run: retrieval sees the place at night and in snow too
+              "descriptor": globaldesc.encode(np.stack([globaldesc.describe(im, cfg["descriptor"]) for im in images]))},
     )
     stats = {"place": place.index, "seconds": time.perf_counter() - t0, "mining": mp.mining.as_dict(),
              "runs": len(views), "images": mp.n_images, **mp.image_counts,
@@ -546,11 +554,14 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     metas = [p.to_dict() for p in places]
     # Georeferencing from every training run (mapping.georef); the per-run observations are read back
     # from the place files so a resumed build combines exactly what an uninterrupted one would.
-    poses, georef_extra = georef_mod.georeference_places(places, _georef_observations(out, places),
-                                                         cfg["georeference"])
+    metas_written = _written_meta(out, places)
+    poses, georef_extra = georef_mod.georeference_places(
+        places, {i: w.get("georef", []) for i, w in metas_written.items()}, cfg["georeference"])
     for m in metas:
         m["T_world_place"] = poses[m["index"]].tolist()
         m["extra"] = {"georeference": georef_extra[m["index"]]}
+        if "descriptor" in metas_written[m["index"]]:
+            m["extra"]["descriptor"] = metas_written[m["index"]]["descriptor"]
     if reference.truth_times is not None:
         # Simulated reference run: record where each place truly is, so the evaluation can tell the
         # localiser's error relative to the map from the map's own georeferencing error.
@@ -606,12 +617,12 @@ def _refuse_empty_map(out: Path, writer: MapWriter, places, allstats: dict, seco
                          f"two per partition of the clustering).")
 
 
-def _georef_observations(out: Path, places) -> dict:
-    """Per-place georeferencing observations (``meta["georef"]``) of the written place files."""
+def _written_meta(out: Path, places) -> dict:
+    """Per-place metadata of the written place files (georeferencing observations, descriptors)."""
     obs = {}
     for p in places:
         path = out / place_file_name(p.index)
-        obs[p.index] = decode_place(path.read_bytes(), path, p.index).meta.get("georef", [])
+        obs[p.index] = decode_place(path.read_bytes(), path, p.index).meta
     return obs
 
 

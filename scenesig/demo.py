@@ -7,13 +7,15 @@
 3. **localise** every live run with scene signatures and the four point-feature baselines: ORB and
    SIFT against the reference run's keyframes (``orb``, ``sift``: the paper's baseline) and against
    keyframes from every training run (``orb-all``, ``sift-all``) (deterministic replay: the detector
-   at 5 Hz, as in the paper);
+   at 5 Hz, as in the paper), starting from and reset by the run's INS/GPS (the paper's protocol), and
+   with scene signatures once more without any INS/GPS (``--oracle none``: global localisation from the
+   map, relocalisation when lost) -- the ``signatures-none`` entry;
 4. the **matching experiment** (§4.2) on the live runs;
 5. the **report** (``DIR/report/index.html``), a table on stdout and ``DIR/summary.json``::
 
        {"runs": [{"run": str, "conditions": [str],
                   "methods": {"signatures": METRICS, "orb": METRICS, "sift": METRICS,
-                              "orb-all": METRICS, "sift-all": METRICS}}],
+                              "orb-all": METRICS, "sift-all": METRICS, "signatures-none": METRICS}}],
         "seconds": float, "localise_seconds_by_method": {METHOD: float}}
 
    where METRICS is the localiser's ``metrics.json``.
@@ -50,6 +52,8 @@ default_config = {
     "camera_hz": 10.0,
     "detector_hz": 5.0,              # the paper's detector rate; every = camera_hz / detector_hz
     "methods": ["signatures", "orb", "sift", "orb-all", "sift-all"],
+    # methods also localised without INS/GPS (--oracle none); entry "<method>-none"
+    "no_oracle_methods": ["signatures"],
 }
 
 
@@ -79,12 +83,14 @@ def _simulate(world: Path, cfg: dict, jobs: int) -> dict:
                     camera_hz=float(cfg["camera_hz"]), jobs=jobs, overwrite=True)
 
 
-def _localise_task(map_root: str, run_root: str, out: str, method: str, every: int) -> tuple[str, str, dict]:
-    """One localisation (module-level so joblib can ship it to a worker process)."""
+def _localise_task(map_root: str, run_root: str, out: str, entry: str, every: int) -> tuple[str, str, dict]:
+    """One localisation (module-level so joblib can ship it to a worker process); ``entry`` is a method
+    name, or ``<method>-none`` for the method without INS/GPS."""
     from localiser.replay import localise
 
-    metrics = localise(map_root, run_root, out, method=method, every=every, progress=False)
-    return Path(run_root).name, method, metrics
+    method, _, oracle = entry.partition("-")
+    metrics = localise(map_root, run_root, out, method=method, every=every, progress=False, oracle=oracle or "ins")
+    return Path(run_root).name, entry, metrics
 
 
 def _fmt(v, digits=2):
@@ -93,18 +99,24 @@ def _fmt(v, digits=2):
 
 def print_table(rows: list[dict], file=sys.stdout) -> None:
     """Per run and method: lateral median, heading median (against truth), lateral median against the
-    map (simulated maps; '-' otherwise), localised fraction, failures, failures per km, blind share."""
-    head = f"{'run':16s} {'conditions':10s} {'method':10s} {'lateral m':>9s} {'heading °':>9s} " \
-           f"{'lat/map m':>9s} {'localised':>9s} {'failures':>8s} {'fail/km':>7s} {'blind>20m':>9s}"
+    map (simulated maps; '-' otherwise), localised fraction, failures, failures per km, blind share, and for
+    a method without INS/GPS the distance to its first fix, its relocalisations and false fixes."""
+    head = f"{'run':16s} {'conditions':10s} {'method':15s} {'lateral m':>9s} {'heading °':>9s} " \
+           f"{'lat/map m':>9s} {'localised':>9s} {'failures':>8s} {'fail/km':>7s} {'blind>20m':>9s} " \
+           f"{'1st fix m':>9s} {'relocs':>6s} {'false':>5s}"
     print(head, file=file)
     print("-" * len(head), file=file)
     for r in rows:
         for name, m in r["methods"].items():
-            print(f"{r['run']:16s} {','.join(r['conditions']):10s} {name:10s} "
+            blind = m.get("oracle") == "none"
+            print(f"{r['run']:16s} {','.join(r['conditions']):10s} {name:15s} "
                   f"{_fmt(m['lateral_error_m']['median']):>9s} {_fmt(m['heading_error_deg']['median']):>9s} "
                   f"{_fmt((m.get('lateral_error_map_m') or {}).get('median')):>9s} "
                   f"{_fmt(m['localised_fraction']):>9s} {m['failures']:>8d} {_fmt(m.get('failures_per_km'), 1):>7s} "
-                  f"{_fmt(m['blind_fraction_over_20m'], 3):>9s}", file=file)
+                  f"{_fmt(m['blind_fraction_over_20m'], 3):>9s} "
+                  f"{_fmt(m.get('first_fix_m') if blind else None, 1):>9s} "
+                  f"{str(m.get('relocalisations', '-')) if blind else '-':>6s} "
+                  f"{str(m.get('false_fixes', '-')):>5s}", file=file)
 
 
 def build_demo_report(out, config: dict | None = None, live_names: list[str] | None = None) -> Path:
@@ -161,12 +173,14 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     build = build_map([runs[n] for n in train_names], runs[ref_name], out / "map", jobs=jobs)
     stages["build_map"] = time.perf_counter() - t
 
-    _log(f"3/5 localising {len(live_names)} live runs with {', '.join(cfg['methods'])} (detector every {every} frames)")
+    entries = list(cfg["methods"]) + [f"{m}-none" for m in cfg["no_oracle_methods"]]
+    _log(f"3/5 localising {len(live_names)} live runs with {', '.join(entries)} (detector every {every} frames; "
+         f"-none: without INS/GPS)")
     t = time.perf_counter()
     todo = []
     metrics = {}
     for n in live_names:
-        for m in cfg["methods"]:
+        for m in entries:
             folder = out / "localise" / n / m
             done = folder / "metrics.json"
             if done.is_file():
@@ -177,7 +191,7 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
                     pass
             todo.append((n, m))
     # slowest first (SIFT against every training keyframe), so the two workers finish together
-    cost = {"sift-all": 0, "sift": 1, "orb-all": 2, "signatures": 3, "orb": 4}
+    cost = {"sift-all": 0, "sift": 1, "orb-all": 2, "signatures": 3, "signatures-none": 3, "orb": 4}
     todo.sort(key=lambda nm: cost.get(nm[1], 3))
     if todo:
         from tqdm import tqdm
@@ -206,10 +220,10 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     stages["report"] = time.perf_counter() - t
 
     rows = [{"run": n, "conditions": list(runs[n].conditions),
-             "methods": {m: metrics[(n, m)] for m in cfg["methods"]}} for n in live_names]
+             "methods": {m: metrics[(n, m)] for m in entries}} for n in live_names]
     # what each method costs inside the demo (its replays' wall time, summed over the live runs)
     per_method = {m: float(sum(metrics[(n, m)].get("wall_seconds") or 0.0 for n in live_names))
-                  for m in cfg["methods"]}
+                  for m in entries}
     summary = {"runs": rows, "seconds": time.perf_counter() - t0, "localise_seconds_by_method": per_method,
                "stage_seconds": stages, "map": {k: build.get(k) for k in (
                    "places", "signatures_per_place_mean", "bytes_per_place_mean", "landmark_depth_rel_error_median")},

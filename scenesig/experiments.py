@@ -284,12 +284,15 @@ class LocaliseOutput:
     folder: Path
     metrics: dict
     frames: dict                      # column -> (N,) array (frames.csv)
-    times: np.ndarray                 # (N,) trajectory.tum times
-    poses: np.ndarray                 # (N,4,4) estimates
+    times: np.ndarray                 # (N,) frame times
+    poses: np.ndarray                 # (N,4,4) estimates (NaN before a localiser without INS/GPS first
+                                      # found itself: trajectory.tum has no pose there)
 
     @property
     def method(self) -> str:
-        return str(self.metrics.get("method", "?"))
+        """The method's name; ``"... (no GPS)"`` for a run localised with ``--oracle none``."""
+        name = str(self.metrics.get("method", "?"))
+        return f"{name} (no GPS)" if self.metrics.get("oracle") == "none" else name
 
     @property
     def run(self) -> str:
@@ -341,7 +344,7 @@ def frame_distances(output: LocaliseOutput, run: SurveyRun | None = None) -> np.
     p = output.poses[:, :3, 3]
     if len(p) < 2:
         return np.zeros(len(p))
-    step = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    step = np.nan_to_num(np.linalg.norm(np.diff(p, axis=0), axis=1))     # no pose yet: no distance
     med = float(np.median(step))
     step = np.where(step > max(5 * med, 3.0), med, step)
     return np.concatenate([[0.0], np.cumsum(step)])
@@ -418,6 +421,11 @@ def summary_rows(outputs: list) -> list[dict]:
                      # frames skipped because their image failed strict decoding, and (real time)
                      # frames dropped to keep up: None where the output predates these counts
                      "frames_corrupt": m.get("frames_corrupt"), "frames_dropped": m.get("frames_dropped"),
+                     # localising without INS/GPS (--oracle none)
+                     "oracle": m.get("oracle", "ins"), "oracle_reads": m.get("oracle_reads"),
+                     "first_fix_m": m.get("first_fix_m"), "relocalisations": m.get("relocalisations"),
+                     "false_fixes": m.get("false_fixes"),
+                     "relocalise_median_m": (m.get("relocalise_m") or {}).get("median"),
                      "folder": str(o.folder)})
     return rows
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import html
 import json
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -89,7 +90,11 @@ def _summary_table(rows: list[dict], out: Path) -> str:
             "<th>localised fraction</th>"
             "<th>failures</th><th>failures / km</th><th>blind &gt; 20 m</th><th>distance (m)</th>"
             "<th title='frames skipped: their image is truncated or corrupt (strict decoding)'>corrupt frames</th>"
-            "<th title='real-time replay: stale frames dropped to keep up'>dropped frames</th></tr>")
+            "<th title='real-time replay: stale frames dropped to keep up'>dropped frames</th>"
+            "<th title='times the localiser read the INS/GPS'>oracle reads</th>"
+            "<th title='distance driven before the first localisation (no GPS: found from the map)'>first fix (m)</th>"
+            "<th>relocalisations</th><th title='median distance from lost to found'>relocalise (m)</th>"
+            "<th title='accepted localisations more than 5 m from the truth'>false fixes</th></tr>")
     body = []
     for r in rows:
         cls = " class='sig'" if r["method"] == "signatures" else ""
@@ -104,7 +109,12 @@ def _summary_table(rows: list[dict], out: Path) -> str:
             f"<td>{_fmt(r['failures_per_km'], 1)}</td><td class='{bcls}'>{_fmt(blind, pct=True)}</td>"
             f"<td>{_fmt(r['distance_m'], 0)}</td>"
             f"<td class='{'bad' if r.get('frames_corrupt') else ''}'>{_fmt(r.get('frames_corrupt'))}</td>"
-            f"<td>{_fmt(r.get('frames_dropped'))}</td></tr>")
+            f"<td>{_fmt(r.get('frames_dropped'))}</td>"
+            f"<td>{_fmt(r.get('oracle_reads'))}</td>"
+            f"<td>{_fmt(r.get('first_fix_m'), 1)}</td><td>{_fmt(r.get('relocalisations'))}</td>"
+            f"<td>{_fmt(r.get('relocalise_median_m'), 1)}</td>"
+            f"<td class='{'bad' if r.get('false_fixes') else 'good' if r.get('false_fixes') == 0 else ''}'>"
+            f"{_fmt(r.get('false_fixes'))}</td></tr>")
     return f"<table id='summary'>{head}{''.join(body)}</table>"
 
 
@@ -199,8 +209,11 @@ def build_report(results, out, runs=None, title: str = "scenesig localisation re
              "<i>lateral vs map</i>: the same against where the map puts the truth (simulated maps), i.e. "
              "without the map's own georeferencing error, which every method inherits from the survey INS; localised "
              "fraction: share of distance within 10 m of a localisation; a failure is more than 20 m on dead "
-             "reckoning (then reset from the INS/GPS); <i>blind &gt; 20 m</i>: share of distance travelled more "
-             "than 20 m past the last localisation (target &le; 1 %).</p>",
+             "reckoning (then reset from the INS/GPS; <i>no GPS</i> rows, localised with <code>--oracle none</code>: "
+             "declared lost, then relocalised from the map); <i>blind &gt; 20 m</i>: share of distance travelled more "
+             "than 20 m past the last localisation (target &le; 1 %). Without GPS the localiser first finds itself "
+             "on the map (<i>first fix</i>: distance driven until then, not counted in the errors or the blind "
+             "share); <i>false fixes</i>: accepted localisations more than 5 m from the truth.</p>",
              _summary_table(rows, out)]
     ratio = _ratio_table(rows)
     if ratio:

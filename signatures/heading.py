@@ -255,17 +255,21 @@ class SignatureHeading:
         return [float(est[p]) for p in pairs]
 
 
-def _run_group(ds, g: _Group, cfg: dict):
-    """Mine one bank and estimate all pairs that use it."""
+def train_bank(ds, place_index: int, train: list, live: int, cfg: dict):
+    """Mine the bank of one place from its training sessions (sessions layout) or from augmented
+    copies of its map image (sequence layout: ``train`` = [the map session]), never from ``live``.
+
+    Returns ``(bank, images, map_offset, stats)``: the bank, its training images (at ``cfg["scale"]``),
+    the horizontal offset of each training session's image relative to the first (scaled px) and
+    the mining statistics.
+    """
+    g = _Group(place_index, live, list(train), [])
     scale = float(cfg["scale"])
     place = ds.places[g.place]
     rng = np.random.default_rng([int(cfg["seed"]), g.place, g.live + 1])
     mcfg = dict(cfg["mining"])
     if cfg["max_classifiers"] is not None:
         mcfg["max_classifiers"] = int(cfg["max_classifiers"])
-    mcfg_full = mining._merge(mcfg)
-    hog_cfg = mcfg_full["hog"]
-
     if ds.kind == "sessions":
         ref = g.train[0]
         images = [_load(place, s, scale) for s in g.train]
@@ -273,7 +277,7 @@ def _run_group(ds, g: _Group, cfg: dict):
         # Other places seen in the training sessions (never the live session).
         others = [(p, s) for p in range(len(ds.places)) if p != g.place
                   for s in ds.places[p].sessions if s != g.live]
-        map_offset = {i: place.displacement(ref, i) * scale for i in g.maps}
+        map_offset = {i: place.displacement(ref, i) * scale for i in g.train}
     else:
         ref = g.train[0]
         base = _load(place, ref, scale)
@@ -293,10 +297,20 @@ def _run_group(ds, g: _Group, cfg: dict):
 
     bank, stats = mining.mine_place(images, offsets, config=mcfg, negatives=negatives, n_jobs=1,
                                     rng=int(cfg["seed"]))
+    st = {"place": g.place, "live": g.live, **stats.as_dict(), "bank_size": len(bank),
+          "appearances": len(g.train)}
+    return bank, images, map_offset, st
+
+
+def _run_group(ds, g: _Group, cfg: dict):
+    """Mine one bank and estimate all pairs that use it."""
+    scale = float(cfg["scale"])
+    place = ds.places[g.place]
+    hog_cfg = mining._merge(dict(cfg["mining"]))["hog"]
+    bank, images, map_offset, st = train_bank(ds, g.place, g.train, g.live, cfg)
     # the one data-dependent rule: it counts the real (not augmented) training appearances
     cfg = bank_config(cfg, len(g.train))
-    st = {"place": g.place, "live": g.live, **stats.as_dict(), "bank_size": len(bank),
-          "appearances": len(g.train), "calibrated": cfg["calibrated"]}
+    st["calibrated"] = cfg["calibrated"]
     recs = {}
     if len(bank) == 0:
         for key in g.pairs:

@@ -320,7 +320,11 @@ def read_gps(path) -> np.ndarray:
     return gps
 
 
-def read_run(folder, check_images: bool = True) -> SurveyRun:
+#: Optional files of a run that :func:`read_run` can be told not to open (``skip``).
+OPTIONAL_FILES = {"groundtruth": "groundtruth.tum", "truth": "truth.tum", "gps": "gps.csv"}
+
+
+def read_run(folder, check_images: bool = True, skip=()) -> SurveyRun:
     """Read and validate a survey-run folder.
 
     Parameters
@@ -329,6 +333,8 @@ def read_run(folder, check_images: bool = True) -> SurveyRun:
     check_images : check that every image file exists and is a JPEG/PNG (headers only) and that the
         first one decodes strictly at the size ``run.toml`` states. Images themselves load lazily
         (and strictly: :meth:`SurveyRun.image`); ``scenesig check`` decodes every one.
+    skip : optional files not to open even where present (keys of :data:`OPTIONAL_FILES`), e.g. a
+        localiser running without GPS opens neither ``groundtruth.tum`` nor ``gps.csv``.
 
     Raises
     ------
@@ -348,12 +354,15 @@ def read_run(folder, check_images: bool = True) -> SurveyRun:
                 raise DataError(fpath, f"{problem}: {root / f}", n)
     odo_t, odo_p = read_odometry(root / "odometry.csv")
 
+    unknown = set(skip) - set(OPTIONAL_FILES)
+    if unknown:
+        raise ValueError(f"unknown optional file(s) {sorted(unknown)}; known: {sorted(OPTIONAL_FILES)}")
     gt_t = gt_p = tr_t = tr_p = gps = None
-    if (root / "groundtruth.tum").exists():
+    if "groundtruth" not in skip and (root / "groundtruth.tum").exists():
         gt_t, gt_p = read_tum(root / "groundtruth.tum")
-    if (root / "truth.tum").exists():
+    if "truth" not in skip and (root / "truth.tum").exists():
         tr_t, tr_p = read_tum(root / "truth.tum")
-    if (root / "gps.csv").exists():
+    if "gps" not in skip and (root / "gps.csv").exists():
         gps = read_gps(root / "gps.csv")
 
     run = SurveyRun(

@@ -43,8 +43,11 @@ def truth_poses(s):
 
 
 def make_live_run(folder, length_m=90.0, seed=0, odometry_bias=(0.0, 0.0, 4e-4, 0.01, 0.0, 0.0),
-                  size=(32, 24), name="live", start_m=2.0):
+                  size=(32, 24), name="live", start_m=2.0, stamp_frames=False):
     """Write a live run driving ``length_m`` along the road; returns the SurveyRun read back.
+
+    ``stamp_frames``: frame k's image holds ``k % 256`` and ``k // 256`` in its first two pixels (lossless
+    PNG), so a stub that only sees images can tell which frame it is (:func:`frame_index`).
 
     Odometry: true increments perturbed by a per-step bias (rotation rad, translation m, GTSAM order)
     and white noise, so dead reckoning drifts; INS/GPS: truth with a slowly wandering offset
@@ -78,8 +81,20 @@ def make_live_run(folder, length_m=90.0, seed=0, odometry_bias=(0.0, 0.0, 4e-4, 
         truth_times=t, truth_poses=truth, gps=np.column_stack([t, ins[:, :3, 3]]), metadata={"seed": seed},
     )
     img = np.full((h, w), 128, np.uint8)
-    write_run(run, folder, images=[img] * n)
+    images = [img] * n
+    if stamp_frames:
+        images = [img.copy() for _ in range(n)]
+        for k, im in enumerate(images):
+            im[0, 0], im[0, 1] = k % 256, k // 256
+    write_run(run, folder, images=images)
     return read_run(folder)
+
+
+def frame_index(image) -> int:
+    """The frame number a ``stamp_frames`` run wrote into its image."""
+    im = np.asarray(image)
+    im = im if im.ndim == 2 else im[:, :, 0]
+    return int(im[0, 0]) + 256 * int(im[0, 1])
 
 
 def make_map(folder, length_m=120.0, spacing=10.0, camera=None, T_vehicle_camera=None, T_map_world=None):

@@ -9,7 +9,8 @@ from scenesig.demo import default_config
 
 METRIC_KEYS = {"method", "run", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
                "failures_per_km", "blind_fraction_over_20m", "ms_per_detection", "ms_per_solve",
-               "ms_per_odometry_update", "realtime_factor", "method_config"}
+               "ms_per_odometry_update", "realtime_factor", "method_config", "oracle", "oracle_reads", "first_fix_m",
+               "relocalisations", "false_fixes", "relocalise_m"}
 
 
 @pytest.fixture(scope="module")
@@ -27,10 +28,13 @@ def test_summary_schema(demo_out):
     assert set(s["localise_seconds_by_method"]) == set(default_config["methods"])
     assert [r["conditions"] for r in s["runs"]] == [[c] for c in default_config["live"]]
     for r in s["runs"]:
-        assert set(r["methods"]) == set(default_config["methods"])
+        assert set(r["methods"]) == set(default_config["methods"]) | {
+            f"{m}-none" for m in default_config["no_oracle_methods"]}
         for name, m in r["methods"].items():
             assert METRIC_KEYS <= set(m), METRIC_KEYS - set(m)
-            assert m["method"] == name and m["run"] == r["run"] and m["method_config"]["method"] == name
+            method = name.removesuffix("-none")
+            assert m["method"] == method and m["run"] == r["run"] and m["method_config"]["method"] == method
+            assert m["oracle"] == ("none" if name.endswith("-none") else "ins")
             # the summary holds the localiser's own metrics.json, not a copy that could drift
             on_disk = json.loads((demo_out / "localise" / r["run"] / name / "metrics.json").read_text())
             assert on_disk == m
@@ -42,11 +46,16 @@ def test_signatures_localise_every_held_out_run(demo_out):
         m = r["methods"]["signatures"]
         assert m["failures"] == 0, (r["run"], m["failures"])
         assert m["blind_fraction_over_20m"] <= 0.01, (r["run"], m["blind_fraction_over_20m"])
+        # and without any INS/GPS: found from the map, never wrongly
+        m = r["methods"]["signatures-none"]
+        assert m["oracle_reads"] == 0 and m["false_fixes"] == 0, (r["run"], m)
+        assert m["first_fix_m"] is not None and m["first_fix_m"] <= 20.0, (r["run"], m["first_fix_m"])
 
 
 def test_report_and_matching_written(demo_out):
     html = (demo_out / "report" / "index.html").read_text()
     assert "<img" in html
+    assert "signatures (no GPS)" in html and "first fix" in html
     assert (demo_out / "matching" / "matching.json").is_file()
     assert (demo_out / "map" / "build_summary.json").is_file()
 

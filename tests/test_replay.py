@@ -273,3 +273,23 @@ def test_tiny_world_point_features_localise_the_like_for_like_run(tiny_fast, tmp
     cfg = m["method_config"]
     assert cfg["point_map"] == "reference" and cfg["match"] == "ratio" and cfg["prior_gating"] is True
     assert cfg["n_features"] == 2000 and cfg["min_inliers"] >= 12
+
+
+def test_tiny_world_kidnapped_start_without_ins(tiny_fast, tmp_path):
+    """A run starting mid-route (another ``simulate`` call, same seed), its INS and GPS files removed:
+    localised from the map alone, correctly, with no oracle read."""
+    from surveys.sim.simulate import simulate
+
+    map_root, live = tiny_fast
+    simulate(tmp_path / "mid", preset="tiny", seed=1, runs=["night"], camera_hz=5.0, start_m=20.0,
+             show_progress=False)
+    run = tmp_path / "mid" / "run00_night"
+    (run / "groundtruth.tum").unlink()
+    (run / "gps.csv").unlink()
+    m = localise(map_root, run, tmp_path / "out", every=1, progress=False, oracle="none", figure=False)
+    assert m["oracle"] == "none" and m["oracle_reads"] == 0
+    assert m["false_fixes"] == 0 and m["failures"] == 0
+    assert m["first_fix_m"] is not None and m["first_fix_m"] < 15.0
+    assert m["lateral_error_map_m"]["median"] < 0.5, m
+    with pytest.raises(DataError, match="groundtruth.tum"):     # the paper's protocol needs the INS
+        localise(map_root, run, tmp_path / "ins", every=1, progress=False, oracle="ins", figure=False)

@@ -112,3 +112,26 @@ def test_place_views_show_one_place_under_many_conditions():
         assert img.std() > 10  # a scene, not a blank frame
     a, b = views[0][0].astype(int), views[2][0].astype(int)
     assert np.abs(a - b).mean() > 5  # conditions differ
+
+
+def test_start_m_same_world_other_start(sim_out, tmp_path):
+    """A run started mid-route (``--start-m``): the same world (world.json identical apart from its
+    ``runs`` entry, which holds the start and the camera rate), the vehicle starts where asked."""
+    out, _ = sim_out
+    other = tmp_path / "mid"
+    simulate(other, preset="tiny", seed=5, runs=["snow"], camera_hz=1.0, start_m=25.0, show_progress=False)
+    a, b = json.loads((out / "world.json").read_text()), json.loads((other / "world.json").read_text())
+    ra, rb = a.pop("runs"), b.pop("runs")
+    assert a == b
+    assert rb == [{"name": "run00_snow", "conditions": ["snow"], "camera_hz": 1.0, "start_m": 25.0}]
+    assert ra[0]["start_m"] == 0.0 and ra[0]["camera_hz"] == 2.0
+    world = World("tiny", 5)
+    first = read_run(other / "run00_snow").truth_poses[0, :2, 3]
+    # the first frame is taken where the drive starts (after a 1 s lead-in)
+    s = world.route.s[np.argmin(np.linalg.norm(world.route.xy - first, axis=1))]
+    assert abs(s - 25.0) < 0.5
+    start0 = read_run(out / "run00_sunny").truth_poses[0, :2, 3]
+    assert abs(world.route.s[np.argmin(np.linalg.norm(world.route.xy - start0, axis=1))]) < 0.5
+    with pytest.raises(ValueError, match="start_m"):
+        simulate(tmp_path / "bad", preset="tiny", seed=5, runs=["snow"], camera_hz=1.0, start_m=55.0,
+                 show_progress=False)

@@ -29,6 +29,8 @@ BENCHMARKS = {
     "absolute-pose": ("absolute_pose", "Robust absolute pose (poselib, pycolmap, OpenCV) on synthetic matches."),
     "profile_localise": ("profile_localise", "Where a deterministic replay spends its time, per stage."),
     "profile_mining": ("profile_mining", "Where one place's mining spends its time, per stage."),
+    "places": ("places", "Place recognition on GRIEF data (recall@1, recall@5 per method)."),
+    "relocalise": ("relocalise", "Global localisation cost per frame at 30, 100, 300 places."),
 }
 
 

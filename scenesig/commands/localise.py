@@ -29,6 +29,9 @@ def register(groups):
     mode.add_argument("--realtime", action="store_true", help="threads and queues, stale frames dropped")
     p.add_argument("--speed", type=float, default=1.0,
                    help="with --realtime: replay speed as a multiple of the recorded rate (default 1)")
+    p.add_argument("--oracle", choices=("ins", "none"), default="ins",
+                   help="ins (default, the paper's protocol): start and reset from the run's INS/GPS; none: no "
+                        "INS/GPS -- global localisation from the map at start-up, relocalisation when lost")
     p.set_defaults(_run=run, _parser=p)
 
 
@@ -40,9 +43,10 @@ def run(args) -> int:
     except ValueError as exc:
         args._parser.error(str(exc))
     metrics = localise(args.map, args.run, args.out, method=args.method, every=args.every or 4,
-                       realtime=bool(args.realtime), speed=float(args.speed or 1.0),
+                       realtime=bool(args.realtime), speed=float(args.speed or 1.0), oracle=args.oracle,
                        config={"method": opts} if opts else None)
-    keys = ("method", "run", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
-            "blind_fraction_over_20m", "realtime_factor", "frames_corrupt", "frames_dropped")
+    keys = ("method", "run", "oracle", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
+            "blind_fraction_over_20m", "first_fix_m", "relocalisations", "false_fixes", "realtime_factor",
+            "frames_corrupt", "frames_dropped")
     print(json.dumps({k: metrics[k] for k in keys if k in metrics}, indent=1))
     return 0

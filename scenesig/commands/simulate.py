@@ -20,6 +20,9 @@ def register(groups):
     p.add_argument("--camera-hz", type=float, default=None, help="camera rate (default 20 Hz)")
     p.add_argument("--jobs", type=positive_int, default=1, help="runs rendered in parallel")
     p.add_argument("--overwrite", action="store_true", help="replace runs already in OUT (default: refuse)")
+    p.add_argument("--start-m", dest="start_m", type=float, default=0.0,
+                   help="distance along the route (m) where every run begins (default 0); the world is the same "
+                        "for the same preset and seed, so such runs localise against a map built from another call")
     p.set_defaults(_run=run)
 
 
@@ -32,7 +35,7 @@ def run(args) -> int:
     camera_hz = args.camera_hz or default_config["camera_hz"]
     try:
         summary = simulate(args.out, preset=args.preset, seed=int(args.seed), runs=runs, camera_hz=float(camera_hz),
-                           jobs=int(args.jobs or 1), overwrite=bool(args.overwrite))
+                           jobs=int(args.jobs or 1), overwrite=bool(args.overwrite), start_m=float(getattr(args, "start_m", 0.0) or 0.0))
     except (ValueError, FileExistsError) as exc:
         print(f"scenesig simulate: error: {exc}", file=sys.stderr)
         return 2

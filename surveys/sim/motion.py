@@ -152,16 +152,28 @@ class Drive:
         return out[0] if single else out
 
 
-def plan_drive(route: Route, rng: np.random.Generator, crossings=(), stop_prob: float = 0.7) -> Drive:
-    """Draw one run's lateral offset, speed profile and stops; return its :class:`Drive`."""
-    L = route.drive_length
+def plan_drive(route: Route, rng: np.random.Generator, crossings=(), stop_prob: float = 0.7,
+               start_m: float = 0.0) -> Drive:
+    """Draw one run's lateral offset, speed profile and stops; return its :class:`Drive`.
+
+    ``start_m``: arc length where the run begins (a kidnapped start).  A loop is still driven for a
+    whole lap (from ``start_m`` round to it again), an open route from ``start_m`` to its end.  The
+    random draws are the same for every ``start_m``: 0 gives exactly the drive it always gave.
+    """
+    M = float(start_m)
+    L = route.drive_length if route.closed else route.drive_length - M
+    if not 0.0 <= M < route.drive_length or L < 20.0:
+        raise ValueError(f"start_m must lie in [0, {route.drive_length:.0f}) m and leave at least 20 m to drive "
+                         f"(an open route ends at {route.drive_length:.0f} m), got {M:g}")
     ds = 0.1
-    sg = np.arange(0.0, L + ds / 2, ds)
+    sg = np.arange(0.0, L + ds / 2, ds)         # distance driven from the start
     v_t = 9.0 + smooth_process(rng, sg, (50.0, 110.0, 230.0), amplitude=rng.uniform(3.5, 5.5))
-    kappa = np.abs(np.interp(route.wrap(sg), route.s, route.curvature()))
+    kappa = np.abs(np.interp(route.wrap(sg + M), route.s, route.curvature()))
     kappa = np.convolve(kappa, np.ones(41) / 41, "same")
     v = np.clip(np.minimum(v_t, np.sqrt(2.0 / np.maximum(kappa, 1e-6))), 3.5, 14.5)
-    crossings = [c for c in np.atleast_1d(crossings) if 10.0 < c < L - 5.0]
+    lap = route.drive_length
+    crossings = [(c - M) % lap if route.closed else c - M for c in np.atleast_1d(crossings)]
+    crossings = sorted(c for c in crossings if 10.0 < c < L - 5.0)
     stops = []
     for c in crossings:
         if rng.random() < stop_prob:
@@ -196,13 +208,14 @@ def plan_drive(route: Route, rng: np.random.Generator, crossings=(), stop_prob: 
     base = smooth_process(rng, span, (60.0, 120.0, 240.0), amplitude=rng.uniform(0.6, 1.0))
 
     def offset(s):
-        return LANE_CENTRE + np.interp(s, span, base)
+        return LANE_CENTRE + np.interp(s - M, span, base)
 
     def rough(scale):
         vals = smooth_process(rng, span, (7.0, 13.0, 31.0), amplitude=scale)
-        return lambda s: np.interp(s, span, vals)
+        return lambda s: np.interp(s - M, span, vals)
 
-    return Drive(route, t, sg, offset, stops, (rough(0.003), rough(0.002), rough(0.005)))
+    return Drive(route, t, sg + M, offset, [(s + M, d) for s, d in stops],
+                 (rough(0.003), rough(0.002), rough(0.005)))
 
 
 def drift_per_100m(P_true: np.ndarray, P_est: np.ndarray, length: float = 100.0, stride: int = 10):

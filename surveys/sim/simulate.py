@@ -5,11 +5,15 @@ plans the vehicle's drive (:mod:`surveys.sim.motion`), renders the camera frames
 the run's condition with its own distractors (:mod:`surveys.sim.scene`), simulates VO odometry and
 INS/GPS with their error models, and writes a survey-run folder with :func:`surveys.run.write_run`::
 
-    OUT/world.json               preset, seed, route and layout summary (World.load regenerates it)
+    OUT/world.json               preset, seed, route and layout summary (World.load regenerates it), and
+                                 ``runs``: each run's name, conditions, camera rate and start (``start_m``)
     OUT/<run_name>/...           one survey run per condition (images, odometry, INS, exact truth)
     OUT/simulate_summary.json    runs, frames, seconds, frames_per_second
 
-Everything follows from the seed: the same seed writes identical files.
+Everything follows from the seed: the same seed writes identical files.  The world (layout, textures,
+route) depends on the preset and seed only; what differs between calls -- the conditions, the camera
+rate, where on the route the runs start (``--start-m``) -- is kept in ``world.json``'s ``runs`` entry,
+so runs of one call localise against a map built from runs of another call with the same seed.
 
 Run as ``scenesig simulate OUT --preset tiny --seed 1``.
 """
@@ -37,6 +41,7 @@ default_config = {
     "seed": 0,
     "runs": None,            # None: the preset's run list; else a list of condition names
     "camera_hz": 20.0,
+    "start_m": 0.0,          # distance along the route where every run begins (a kidnapped start)
     "odometry_hz": 20.0,
     "ins_hz": 10.0,
     "gps_hz": 1.0,
@@ -68,7 +73,7 @@ def _start_epoch(cond, index: int) -> float:
 
 def simulate_run(preset: str, seed: int, index: int, condition: str, out_dir, camera_hz: float = 20.0,
                  odometry_hz: float = 20.0, ins_hz: float = 10.0, gps_hz: float = 1.0, jpeg_quality: int = 95,
-                 overwrite: bool = False, progress=None, single_thread: bool = False) -> dict:
+                 overwrite: bool = False, progress=None, single_thread: bool = False, start_m: float = 0.0) -> dict:
     """Simulate and write run number ``index`` with ``condition``; returns a small summary dict."""
     import cv2
 
@@ -78,7 +83,7 @@ def simulate_run(preset: str, seed: int, index: int, condition: str, out_dir, ca
     world = _world(preset, seed)
     name = run_names([condition] * (index + 1))[index]
     rng = rng_for(seed, "motion", index)
-    drive = plan_drive(world.route, rng, world.crossings)
+    drive = plan_drive(world.route, rng, world.crossings, start_m=start_m)
     scene = RunScene(world, condition, run_key=(index,))
     cond = scene.cond
     cam = scene.camera
@@ -107,7 +112,7 @@ def simulate_run(preset: str, seed: int, index: int, condition: str, out_dir, ca
 
     metadata = {
         "simulator": "surveys.sim", "generator_version": GENERATOR_VERSION, "preset": preset, "seed": int(seed),
-        "run_index": int(index),
+        "run_index": int(index), "start_m": float(start_m),
         "condition": condition, "odometry_factor": float(cond.odometry_factor),
         "sun_elevation_deg": float(cond.sun_elev) if cond.sun_elev is not None else -1.0,
         "fog_visibility_m": float(cond.fog_visibility or 0.0),
@@ -132,7 +137,7 @@ def simulate_run(preset: str, seed: int, index: int, condition: str, out_dir, ca
 
 
 def simulate(out, preset: str = "demo", seed: int = 0, runs: list[str] | None = None, camera_hz: float = 20.0,
-             jobs: int = 1, overwrite: bool = False, show_progress: bool = True, **rates) -> dict:
+             jobs: int = 1, overwrite: bool = False, show_progress: bool = True, start_m: float = 0.0, **rates) -> dict:
     """Simulate a preset's runs (or the given condition list) into ``out``; returns the summary."""
     from tqdm import tqdm
 
@@ -155,14 +160,16 @@ def simulate(out, preset: str = "demo", seed: int = 0, runs: list[str] | None = 
     t0 = time.perf_counter()
     world = _world(preset, seed)
     desc = world.to_json()
-    desc["runs"] = [{"name": n, "conditions": [c]} for n, c in zip(names, conditions)]
-    atomic_write_text(out / "world.json", json.dumps(desc, indent=1))
-    # frame counts up front (drives are cheap) for an honest progress bar
+    # frame counts up front (drives are cheap) for an honest progress bar; a bad start_m fails here
     total = 0
     for i in range(len(conditions)):
-        d = plan_drive(world.route, rng_for(seed, "motion", i), world.crossings)
+        d = plan_drive(world.route, rng_for(seed, "motion", i), world.crossings, start_m=start_m)
         total += len(np.arange(1.0, d.duration - 1.0, 1.0 / camera_hz))
-    kw = dict(camera_hz=camera_hz, **{k: v for k, v in rates.items() if v is not None})
+    # everything that depends on this call rather than on the world goes in "runs"
+    desc["runs"] = [{"name": n, "conditions": [c], "camera_hz": float(camera_hz), "start_m": float(start_m)}
+                    for n, c in zip(names, conditions)]
+    atomic_write_text(out / "world.json", json.dumps(desc, indent=1))
+    kw = dict(camera_hz=camera_hz, start_m=float(start_m), **{k: v for k, v in rates.items() if v is not None})
     bar = tqdm(total=total, unit="frame", desc=f"simulate {preset}", disable=not show_progress)
     results = []
     if jobs == 1 or len(conditions) == 1:
@@ -186,7 +193,7 @@ def simulate(out, preset: str = "demo", seed: int = 0, runs: list[str] | None = 
     summary = {"runs": [{"name": r["name"], "conditions": r["conditions"]} for r in results],
                "frames": int(frames), "seconds": round(seconds, 3),
                "frames_per_second": round(frames / seconds, 2) if seconds > 0 else None,
-               "preset": preset, "seed": int(seed), "camera_hz": float(camera_hz), "jobs": int(jobs),
+               "preset": preset, "seed": int(seed), "camera_hz": float(camera_hz), "start_m": float(start_m), "jobs": int(jobs),
                "image_size": list(world.image_size)}
     atomic_write_text(out / "simulate_summary.json", json.dumps(summary, indent=1))
     return summary
