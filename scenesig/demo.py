@@ -88,8 +88,10 @@ def _localise_task(map_root: str, run_root: str, out: str, entry: str, every: in
     name, or ``<method>-none`` for the method without INS/GPS."""
     from localiser.replay import localise
 
-    method, _, oracle = entry.partition("-")
-    metrics = localise(map_root, run_root, out, method=method, every=every, progress=False, oracle=oracle or "ins")
+    blind = entry.endswith("-none")
+    method = entry.removesuffix("-none")
+    metrics = localise(map_root, run_root, out, method=method, every=every, progress=False,
+                       oracle="none" if blind else "ins")
     return Path(run_root).name, entry, metrics
 
 

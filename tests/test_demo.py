@@ -25,7 +25,8 @@ def test_summary_schema(demo_out):
     assert set(s) >= {"runs", "seconds", "localise_seconds_by_method"} and s["seconds"] > 0
     # signatures and the four point-feature baselines (reference and all-runs point maps)
     assert set(default_config["methods"]) == {"signatures", "orb", "sift", "orb-all", "sift-all"}
-    assert set(s["localise_seconds_by_method"]) == set(default_config["methods"])
+    assert set(s["localise_seconds_by_method"]) == set(default_config["methods"]) | {
+        f"{m}-none" for m in default_config["no_oracle_methods"]}
     assert [r["conditions"] for r in s["runs"]] == [[c] for c in default_config["live"]]
     for r in s["runs"]:
         assert set(r["methods"]) == set(default_config["methods"]) | {
