@@ -273,9 +273,8 @@ def run_benchmark(root, methods=METHODS, train: str = "multi", config: dict | No
 
     bar = tqdm(total=len(methods) * sum(len(s.test) for s in scenes), desc=f"webcam ({train})",
                unit="img", disable=not progress)
-    for si, sc in enumerate(scenes):
+    for sc in scenes:
         train_imgs = [load(f)[0] for f in sc.train]
-        scale = load(sc.train[0])[1]
         test = [(f, *load(f)) for f in sc.test]
         for m in methods:
             t0 = time.perf_counter()
