@@ -99,6 +99,18 @@ def _write_all(fd: int, data) -> None:
         view = view[n:]
 
 
+def _abandon(tmp: Path, path: Path, exc: BaseException):
+    """A write to ``tmp`` for ``path`` failed: remove the temporary, re-raise (an OSError as
+    :class:`OutputError` naming ``path``, so the final file is never half-written)."""
+    try:
+        tmp.unlink(missing_ok=True)
+    except OSError:
+        pass
+    if isinstance(exc, OSError):
+        raise output_error(path, exc) from exc
+    raise exc
+
+
 def atomic_write_bytes(path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically; :class:`OutputError` (the file left as it was) on failure."""
     path = Path(path)
@@ -112,13 +124,7 @@ def atomic_write_bytes(path, data: bytes) -> None:
             os.close(fd)
         _replace(tmp, path)
     except BaseException as exc:
-        try:
-            tmp.unlink(missing_ok=True)
-        except OSError:
-            pass
-        if isinstance(exc, OSError):
-            raise output_error(path, exc) from exc
-        raise
+        _abandon(tmp, path, exc)
 
 
 def atomic_write_text(path, text: str, encoding: str = "utf-8") -> None:
@@ -142,13 +148,7 @@ def atomic_path(path):
             os.close(fd)
         _replace(tmp, path)
     except BaseException as exc:
-        try:
-            tmp.unlink(missing_ok=True)
-        except OSError:
-            pass
-        if isinstance(exc, OSError):
-            raise output_error(path, exc) from exc
-        raise
+        _abandon(tmp, path, exc)
 
 
 @contextmanager
