@@ -220,26 +220,27 @@ def run_point_features(dataset: GriefDataset, pairs: list[GriefPair], kind: str 
 # ---------------------------------------------------------------------------------- signatures
 
 
-def _training_description(dataset: GriefDataset, cfg: dict) -> str:
-    if dataset.kind == "sessions":
+def _training_description(dataset: GriefDataset, cfg: dict, single: bool = False) -> str:
+    if dataset.kind == "sessions" and not single:
         return ("leave-one-session-out: for live session j, one bank per place mined from the "
                 "place's other sessions, aligned by their ground-truth displacements (never j's); "
                 "other places' images of the training sessions as external negatives")
-    return (f"one appearance per place: bank mined from the map (season_00) image plus "
+    return (f"one appearance per place: bank mined from the pair's map image plus "
             f"{cfg.get('augment_copies', '?')} photometrically augmented copies (gamma, contrast, "
             f"colour cast, blur, noise, desaturation, synthetic snow) shifted by up to "
-            f"+-{cfg.get('augment_shift_px', '?')} px; other places' map images as external "
-            f"negatives; live (season_01) images never used in training")
+            f"+-{cfg.get('augment_shift_px', '?')} px; other places' images of the map session as "
+            f"external negatives; live images never used in training")
 
 
 def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 1,
-                   progress: bool = True, config: dict | None = None) -> MethodResult:
+                   progress: bool = True, config: dict | None = None,
+                   single: bool = False) -> MethodResult:
     """Estimate every pair with the scene-signature method (:mod:`signatures.heading`)."""
     from signatures.heading import SignatureHeading
 
     t0 = time.perf_counter()
     detail, extra = {}, {}
-    est = SignatureHeading(dataset, config, n_jobs=n_jobs, progress=progress)
+    est = SignatureHeading(dataset, config, n_jobs=n_jobs, progress=progress, single=single)
     estimates = np.asarray(est.estimate(list(pairs)), float)
     for p in pairs:
         rec = est.records.get(tuple(int(v) for v in p))
@@ -257,7 +258,7 @@ def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 
     extra["config"] = dict(cfg)
     if stats:
         extra["calibrated_banks"] = int(sum(bool(s.get("calibrated")) for s in stats))
-    extra["training"] = _training_description(dataset, cfg)
+    extra["training"] = _training_description(dataset, cfg, single)
     extra["jobs"] = n_jobs
     return MethodResult("signatures", estimates, time.perf_counter() - t0, extra, detail)
 
@@ -375,7 +376,8 @@ def _progress(total: int, desc: str, enabled: bool):
 def run_benchmark(dataset_path, methods=("signatures", "orb", "sift"), json_path=None,
                   figure_dir=None, n_jobs: int = 1, preset: str = "grief",
                   progress: bool = True, signatures_config: dict | None = None,
-                  max_pairs: int | None = None) -> dict:
+                  max_pairs: int | None = None, single: bool = False,
+                  map_sessions=None) -> dict:
     """Run the benchmark and write the JSON (and figure).
 
     Parameters
@@ -394,6 +396,11 @@ def run_benchmark(dataset_path, methods=("signatures", "orb", "sift"), json_path
         Point-feature variant (:data:`BASELINE_PRESETS`).
     max_pairs : int, optional
         Only the first N protocol pairs (quick checks; the full protocol is the default).
+    single : bool
+        Signatures: every bank from the pair's map image alone plus synthesised copies
+        (:class:`signatures.heading.SignatureHeading`'s ``single``); the sequence layout always is.
+    map_sessions : sequence of int, optional
+        Only the pairs whose map image is from these sessions (0-based).
 
     Returns
     -------
@@ -409,6 +416,9 @@ def run_benchmark(dataset_path, methods=("signatures", "orb", "sift"), json_path
         raise ValueError(f"method listed twice in {','.join(methods)}")
     dataset = load(dataset_path)
     pairs = list(dataset.pairs())
+    if map_sessions is not None:
+        keep = {int(m) for m in map_sessions}
+        pairs = [p for p in pairs if p.map in keep]
     if max_pairs is not None:
         pairs = pairs[:max_pairs]
     if not pairs:
@@ -421,13 +431,16 @@ def run_benchmark(dataset_path, methods=("signatures", "orb", "sift"), json_path
     for name in methods:
         if name == "signatures":
             r = run_signatures(dataset, pairs, n_jobs=n_jobs, progress=progress,
-                               config=signatures_config)
+                               config=signatures_config, single=single)
         else:
             r = run_point_features(dataset, pairs, name, preset, default_config["n_features"],
                                    n_jobs, progress, keep_detail=set(fig_pairs))
         results[name] = r
 
-    doc = {"dataset": dataset.name, "pairs": len(pairs), "tolerance_px": tol, "methods": {}}
+    doc = {"dataset": dataset.name, "pairs": len(pairs), "tolerance_px": tol,
+           "single": bool(single or dataset.kind == "sequence"),
+           "map_sessions": None if map_sessions is None else sorted({int(m) for m in map_sessions}),
+           "methods": {}}
     for name, r in results.items():
         s = score(dataset, pairs, r.estimates, tol)
         entry = {"error_rate": s["error_rate"], "errors": s["errors"], "pairs": s["pairs"],
@@ -464,6 +477,27 @@ def print_table(doc: dict, file=None) -> None:
               f"{m['seconds']:>10.1f}", file=out)
 
 
+def _sessions(text):
+    if not text:
+        return None
+    try:
+        out = [int(t) - 1 for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise ValueError(f"--map-sessions takes 1-based session numbers, got {text!r}") from None
+    if not out or min(out) < 0:
+        raise ValueError(f"--map-sessions takes 1-based session numbers, got {text!r}")
+    return out
+
+
+def _read_config(path):
+    if not path:
+        return None
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise DataError(path, f"cannot read the settings: {exc}") from None
+
+
 def run_from_args(args) -> int:
     """Entry point of ``scenesig bench heading`` (args: dataset, methods, json, figure[, jobs,
     baseline_preset, max_pairs])."""
@@ -471,7 +505,10 @@ def run_from_args(args) -> int:
         run_benchmark(args.dataset, args.methods.split(","), args.json,
                       getattr(args, "figure", None), n_jobs=int(getattr(args, "jobs", 1) or 1),
                       preset=getattr(args, "baseline_preset", "grief") or "grief",
-                      max_pairs=getattr(args, "max_pairs", None))
+                      max_pairs=getattr(args, "max_pairs", None),
+                      single=bool(getattr(args, "single", False)),
+                      map_sessions=_sessions(getattr(args, "map_sessions", None)),
+                      signatures_config=_read_config(getattr(args, "config", None)))
     except (ValueError, RuntimeError) as exc:
         print(f"scenesig bench heading: error: {exc}", file=sys.stderr)
         return 2
@@ -492,6 +529,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="point-feature variant: grief (sliding 20-px bin, mean; default) or "
                         "plain (fixed bins, bin centre, SIFT duplicates kept)")
     p.add_argument("--max-pairs", type=positive_int, default=None, help="only the first N pairs (quick look)")
+    p.add_argument("--single", action="store_true",
+                   help="signatures: mine every bank from the pair's map image alone plus synthesised "
+                        "copies (the sequence layout's protocol; on a sessions layout, a "
+                        "single-experience development set)")
+    p.add_argument("--map-sessions", default=None, metavar="I,J,...",
+                   help="only pairs whose map image is from these sessions (1-based, as the folders)")
+    p.add_argument("--config", default=None, metavar="JSON",
+                   help="JSON file of overrides of signatures.heading.default_config")
 
 
 def main(argv=None) -> int:

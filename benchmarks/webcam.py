@@ -57,6 +57,9 @@ default_config = {
         "augment_copies": 11,      # single mode: augmented copies of the one training image
         "augment_shift_px": 0.0,   # fixed camera: no shifts
         "external_negatives": 4,  # other scenes' training images used as negatives
+        "conditions": [],          # single mode: synthetic conditions of the copies (signatures.augment.relight)
+        "colour_constancy": False,  # local exact histogram matching of each test image to the
+                                    # (first) training image before detection, 5 x 5 windows
         "seed": 0,
     },
     "points": {"n_features": 2000, "ratio": 0.8, "mutual": True, "upright": False,
@@ -179,7 +182,7 @@ def correct_mask(train_xy, test_xy, tolerance_px: float = 15.0) -> np.ndarray:
 def mine_scene_bank(train_images, negatives, cfg: dict, n_jobs: int = 1):
     """The scene's bank: mined from its training images (+ augmented copies when there is one)."""
     from signatures import mining
-    from signatures.heading import augment
+    from signatures.augment import synthesise
 
     scfg = cfg["signatures"]
     images = list(train_images)
@@ -187,21 +190,28 @@ def mine_scene_bank(train_images, negatives, cfg: dict, n_jobs: int = 1):
     P = int({**mining.default_config, **scfg["mining"]}["n_partitions"])
     if len(images) < P or len(images) == 1:
         rng = np.random.default_rng(int(scfg["seed"]))
-        base = list(images)
-        for k in range(int(scfg["augment_copies"])):
-            im, shift = augment(base[k % len(base)], rng, float(scfg["augment_shift_px"]))
-            images.append(im)
-            offsets.append((shift, 0.0))
+        images, offsets = synthesise(images, offsets, int(scfg["augment_copies"]), rng,
+                                     float(scfg["augment_shift_px"]), tuple(scfg["conditions"]))
     bank, stats = mining.mine_place(images, np.asarray(offsets, float), config=scfg["mining"],
                                     negatives=negatives, n_jobs=n_jobs, rng=int(scfg["seed"]))
     return bank, stats
 
 
-def signature_correspondences(bank, image) -> tuple[np.ndarray, np.ndarray]:
-    """(train_xy, test_xy) of every classifier's best detection in the whole image."""
+def signature_correspondences(bank, image, reference=None) -> tuple[np.ndarray, np.ndarray]:
+    """(train_xy, test_xy) of every classifier's best detection in the whole image.
+
+    With ``reference`` (a training image of the same size), the image first gets the reference's
+    colours window by window (local exact histogram matching, 5 x 5 windows:
+    :func:`signatures.colour.local_exact_histogram_match`).
+    """
     if len(bank) == 0:
         return np.zeros((0, 2)), np.zeros((0, 2))
     img = image
+    if reference is not None:
+        from signatures.colour import local_exact_histogram_match
+        if reference.shape != img.shape:
+            reference = cv2.resize(reference, img.shape[1::-1], interpolation=cv2.INTER_AREA)
+        img = local_exact_histogram_match(img, reference, (5, 5))
     if not bank.hog.get("color", False) and img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     d = bank.detect(img, top_n=1)
@@ -289,7 +299,8 @@ def run_benchmark(root, methods=METHODS, train: str = "multi", config: dict | No
                 bank, stats = mine_scene_bank(train_imgs, negs, cfg, n_jobs=n_jobs)
                 mining_stats[sc.name] = {"classifiers": len(bank), "train_images": len(train_imgs),
                                          "seconds": round(stats.seconds, 2)}
-                corr = lambda img: signature_correspondences(bank, img)  # noqa: E731
+                ref = train_imgs[0] if cfg["signatures"]["colour_constancy"] else None
+                corr = lambda img, ref=ref: signature_correspondences(bank, img, ref)  # noqa: E731
             else:
                 feats = [_extract(im, m, cfg) for im in train_imgs]
                 corr = lambda img, feats=feats, m=m: point_correspondences(  # noqa: E731

@@ -52,7 +52,8 @@ import numpy as np
 
 from signatures import hog as hogmod
 from signatures import mining
-from signatures.augment import augment
+from signatures.augment import augment, synthesise
+from signatures.colour import local_exact_histogram_match
 from surveys.settings import merge_settings
 
 __all__ = ["default_config", "bank_config", "SignatureHeading", "estimate_heading_signatures", "vote_displacement",
@@ -82,6 +83,9 @@ default_config = {
     "spread_sigma_px": 6.0,         # vote weight 1 / (1 + (spread_x / this)^2)^2
     "augment_copies": 11,           # sequence layout: augmented copies of the map image
     "augment_shift_px": 24.0,       # sequence layout: max left/right shift of a copy
+    "conditions": [],               # synthetic conditions of the copies (signatures.augment.relight)
+    "colour_constancy": False,      # live image: local exact histogram matching to the bank's first
+                                    # training image (5 x 5 windows) before detection
     "seed": 0,
 }
 
@@ -188,6 +192,11 @@ class SignatureHeading:
         Banks mined/detected in parallel (processes).
     progress : bool
         tqdm progress over banks.
+    single : bool
+        Mine every bank from the pair's map image alone (and its synthesised copies) -- the
+        sequence layout's protocol -- also on a sessions layout, where it turns each session into a
+        one-image map of its places (a development set for single-experience settings that shares
+        no image with the season data set).
 
     Attributes
     ----------
@@ -197,7 +206,8 @@ class SignatureHeading:
         Mining statistics of every bank.
     """
 
-    def __init__(self, dataset, config: dict | None = None, n_jobs: int = 1, progress: bool = True):
+    def __init__(self, dataset, config: dict | None = None, n_jobs: int = 1, progress: bool = True,
+                 single: bool = False):
         if isinstance(dataset, (str, Path)):
             from surveys.grief import load
             dataset = load(dataset)
@@ -205,20 +215,22 @@ class SignatureHeading:
         self.config = merge_settings(default_config, config, "heading", open=("mining",))
         self.n_jobs = int(n_jobs)
         self.progress = progress
+        self.single = bool(single)
         self.records: dict = {}
         self.bank_stats: list = []
 
     # -------------------------------------------------------------- grouping
     def _groups(self, pairs) -> list[_Group]:
         ds = self.dataset
+        by_map = self.single or ds.kind == "sequence"
         groups: dict[tuple[int, int], _Group] = {}
         for pr in pairs:
             place, i, j = int(pr[0]), int(pr[1]), int(pr[2])
-            key = (place, j) if ds.kind == "sessions" else (place, -1)
+            key = (place, i) if by_map else (place, j)
             g = groups.get(key)
             if g is None:
                 pl = ds.places[place]
-                train = ([s for s in pl.sessions if s != j] if ds.kind == "sessions" else [i])
+                train = [i] if by_map else [s for s in pl.sessions if s != j]
                 g = groups[key] = _Group(place, j, train, [])
             g.pairs.append((place, i, j))
             if i not in g.maps:
@@ -256,8 +268,9 @@ class SignatureHeading:
 
 
 def train_bank(ds, place_index: int, train: list, live: int, cfg: dict):
-    """Mine the bank of one place from its training sessions (sessions layout) or from augmented
-    copies of its map image (sequence layout: ``train`` = [the map session]), never from ``live``.
+    """Mine the bank of one place from its training sessions, never from ``live``: the sessions
+    aligned by their ground truth relative to the first, joined -- when they are too few to fill
+    mining's partitions (one map image: the sequence layout or ``single``) -- by augmented copies.
 
     Returns ``(bank, images, map_offset, stats)``: the bank, its training images (at ``cfg["scale"]``),
     the horizontal offset of each training session's image relative to the first (scaled px) and
@@ -270,27 +283,18 @@ def train_bank(ds, place_index: int, train: list, live: int, cfg: dict):
     mcfg = dict(cfg["mining"])
     if cfg["max_classifiers"] is not None:
         mcfg["max_classifiers"] = int(cfg["max_classifiers"])
-    if ds.kind == "sessions":
-        ref = g.train[0]
-        images = [_load(place, s, scale) for s in g.train]
-        offsets = np.array([[place.displacement(ref, s) * scale, 0.0] for s in g.train])
-        # Other places seen in the training sessions (never the live session).
-        others = [(p, s) for p in range(len(ds.places)) if p != g.place
-                  for s in ds.places[p].sessions if s != g.live]
-        map_offset = {i: place.displacement(ref, i) * scale for i in g.train}
-    else:
-        ref = g.train[0]
-        base = _load(place, ref, scale)
-        images, offs = [base], [0.0]
-        for _ in range(int(cfg["augment_copies"])):
-            im, sh = augment(base, rng, float(cfg["augment_shift_px"]) * scale)
-            images.append(im)
-            offs.append(sh)
-        offsets = np.array([[o, 0.0] for o in offs])
-        # Summer (map-season) frames of other places only.
-        others = [(p, ref) for p in range(len(ds.places)) if p != g.place
-                  and ds.places[p].paths[ref] is not None]
-        map_offset = {ref: 0.0}
+    ref = g.train[0]
+    images = [_load(place, s, scale) for s in g.train]
+    offsets = [[place.displacement(ref, s) * scale if s != ref else 0.0, 0.0] for s in g.train]
+    map_offset = {s: o[0] for s, o in zip(g.train, offsets)}
+    if len(images) < int(mining._merge(mcfg)["n_partitions"]):
+        # Too few appearances to partition: synthesised copies of the real images stand in.
+        images, offsets = synthesise(images, offsets, int(cfg["augment_copies"]), rng,
+                                     float(cfg["augment_shift_px"]) * scale, tuple(cfg["conditions"]))
+    offsets = np.asarray(offsets, dtype=float)
+    # Other places seen in the training sessions (never the live session).
+    others = [(p, s) for p in range(len(ds.places)) if p != g.place
+              for s in ds.places[p].sessions if s in g.train and s != g.live]
     n_neg = min(int(cfg["external_negative_images"]), len(others))
     pick = rng.choice(len(others), size=n_neg, replace=False) if n_neg else []
     negatives = [_load(ds.places[others[k][0]], others[k][1], scale) for k in pick]
@@ -306,7 +310,6 @@ def _run_group(ds, g: _Group, cfg: dict):
     """Mine one bank and estimate all pairs that use it."""
     scale = float(cfg["scale"])
     place = ds.places[g.place]
-    hog_cfg = mining._merge(dict(cfg["mining"]))["hog"]
     bank, images, map_offset, st = train_bank(ds, g.place, g.train, g.live, cfg)
     # the one data-dependent rule: it counts the real (not augmented) training appearances
     cfg = bank_config(cfg, len(g.train))
@@ -320,23 +323,27 @@ def _run_group(ds, g: _Group, cfg: dict):
 
     nom = np.array([c.nominal_xy for c in bank])
     spread = np.array([c.spread for c in bank]) / scale     # full-resolution px
-    # Live detection: whole width, rows near the trained row.
-    live_img = _load(place, g.pairs[0][2], scale)
+    # Live detection: whole width, rows near the trained row; once per live image of the group.
     ry = float(cfg["live_search_y_px"]) * scale
     live_win = np.stack([np.full(len(bank), -1e6), nom[:, 1] - ry,
                          np.full(len(bank), 1e6), nom[:, 1] + ry], axis=1)
-    det_live = bank.detect(hogmod.build_pyramid(live_img, hog_cfg, levels=bank.levels()),
-                           windows=live_win, top_n=max(3, int(cfg["live_top_n"])))
+    live_top = max(3, int(cfg["live_top_n"]))
+    det_live = {}
     rm = float(cfg["map_search_px"]) * scale
     for key in g.pairs:
         _, i, j = key
-        img = images[g.train.index(i)] if i in g.train and ds.kind == "sessions" else \
-            (images[0] if ds.kind == "sequence" else _load(place, i, scale))
+        if j not in det_live:
+            live = _load(place, j, scale)
+            if cfg["colour_constancy"]:
+                live = local_exact_histogram_match(live, images[0], (5, 5))
+            live_pyr = hogmod.build_pyramid(live, bank.hog, levels=bank.levels())
+            det_live[j] = bank.detect(live_pyr, windows=live_win, top_n=live_top)
+        img = images[g.train.index(i)] if i in g.train else _load(place, i, scale)
         cx = nom[:, 0] + map_offset[i]
         win = np.stack([cx - rm, nom[:, 1] - rm, cx + rm, nom[:, 1] + rm], axis=1)
-        det_map = bank.detect(hogmod.build_pyramid(img, hog_cfg, levels=bank.levels()),
+        det_map = bank.detect(hogmod.build_pyramid(img, bank.hog, levels=bank.levels()),
                               windows=win)
-        recs[key] = _vote_pair(det_map, det_live, cfg, scale, spread)
+        recs[key] = _vote_pair(det_map, det_live[j], cfg, scale, spread)
     return recs, st
 
 

@@ -85,6 +85,12 @@ default_config = {
     "min_texture": 0.0,           # reject shapes whose initial positives have less mean HOG texture
     "max_classifiers": None,      # keep only the best N survivors by held-out quality
     "platt_C": 10.0,              # inverse ridge penalty on the calibration slope
+    # Whitened HOG (signatures.whiten; Hariharan et al. 2012): mine on decorrelated features and fold
+    # each filter back to raw HOG (radius cells wider on every side).  Off on the paper's path.
+    "whiten": False,
+    "whiten_radius": 1,           # whitening kernel half-width, cells
+    "whiten_reg": 0.1,            # ridge on the background covariance, relative to its mean variance
+    "lda_init": False,            # with whiten: the first filter is LDA (mean of the whitened positives)
 }
 
 
@@ -560,7 +566,12 @@ def _mine_shape(pd: _Place, s_idx: int, box, kind: str):
     max_steps = int(cfg["max_iterations"]) * P
     for t in range(max_steps):
         p, q = t % P, (t + 1) % P
-        w, b = trainer.fit(pos[p], neg_of[p])
+        if t == 0 and cfg["whiten"] and cfg["lda_init"]:
+            # LDA in whitened space (Hariharan et al. 2012): the positives' mean against the
+            # background's, which whitening has moved to zero; only its firing ranking is used.
+            w, b = xc[pos[p]].mean(axis=0).astype(np.float64), 0.0
+        else:
+            w, b = trainer.fit(pos[p], neg_of[p])
         idx, _ = _fire(xc, slices, part_imgs[q], w, b, K)
         steps += 1
         top = meta[idx]
@@ -642,6 +653,16 @@ def _refine_nominal(classifiers, pyramids, offsets, cfg, images_of) -> None:
         rms = np.sqrt(np.mean((pts - med) ** 2, axis=0))
         c.nominal_xy = (float(med[0]), float(med[1]))
         c.spread = (float(rms[0]), float(rms[1]))
+
+
+def _fold_whitening(classifiers, cfg) -> None:
+    """Turn filters trained on whitened HOG into equivalent raw-HOG filters (in place): the bank,
+    the detector and map files then need nothing new (:func:`signatures.whiten.fold_filter`)."""
+    from signatures.whiten import fold_filter
+
+    for c in classifiers:
+        c.weights, c.bias = fold_filter(c.weights, c.bias, int(cfg["whiten_radius"]),
+                                        float(cfg["whiten_reg"]))
 
 
 def _platt(scores: np.ndarray, labels: np.ndarray, C: float) -> tuple[float, float]:
@@ -780,6 +801,11 @@ def mine_place(images, offsets=None, config: dict | None = None, negatives=None,
                 raise ValueError(f"{what} pyramid {i} was built with other HOG parameters")
     if len(pyramids) != n:
         raise ValueError(f"got {len(pyramids)} pyramids for {n} images")
+    if cfg["whiten"]:
+        from signatures.whiten import whiten_pyramid
+        wr, wg = int(cfg["whiten_radius"]), float(cfg["whiten_reg"])
+        pyramids = [whiten_pyramid(p, wr, wg) for p in pyramids]
+        negative_pyramids = [whiten_pyramid(p, wr, wg) for p in negative_pyramids]
     t_pyr = time.perf_counter() - tp
     parts = partition_images(np.stack([appearance_descriptor(im) for im in images]), P)
     pd = _Place(pyramids, offs, parts, list(negative_pyramids), cfg, int(rng))
@@ -806,6 +832,8 @@ def mine_place(images, offsets=None, config: dict | None = None, negatives=None,
         with threadpool_limits(limits=1, user_api="blas"):   # many small multiplies
             _refine_nominal(classifiers, pyramids, offs, cfg,
                             {r[0]: r[3]["images"] for r in results if r[1] == "converged"})
+        if cfg["whiten"]:
+            _fold_whitening(classifiers, cfg)
     status = [r[1] for r in results]
     stats = MiningStats(
         n_shapes=len(shapes), kept=len(classifiers), converged=converged,

@@ -21,6 +21,8 @@ BENCHMARKS = {
     "pointmap": ("pointmap", "ORB/SIFT point map of one keyframe: time, size, depth error."),
     "mining": ("mining", "Mine one place's scene signatures from images; mining statistics."),
     "webcam": ("webcam", "Real night/fog/snow matching on fixed webcams (correct within 15 px)."),
+    "webcam-speed": ("webcam_speed", "Time targets on webcam images: mining 20 images, detection at 1024x627 (one core)."),
+    "simcam": ("simcam", "Simulated fixed webcams (night, fog, snow...): a webcam-layout development folder."),
     "realism": ("realism", "ORB matches across simulated conditions (and GRIEF with --real)."),
     "kitti-import": ("kitti_import", "KITTI raw import speed, frames/s on one core (decode + write)."),
     "kitti-drive": ("kitti_drive", "KITTI snippet end to end: camera-2 map; camera 3, darkened camera 3 localised."),
