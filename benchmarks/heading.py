@@ -437,10 +437,10 @@ def run_benchmark(dataset_path, methods=("signatures", "orb", "sift"), json_path
                                    n_jobs, progress, keep_detail=set(fig_pairs))
         results[name] = r
 
-    doc = {"dataset": dataset.name, "pairs": len(pairs), "tolerance_px": tol,
-           "single": bool(single or dataset.kind == "sequence"),
-           "map_sessions": None if map_sessions is None else sorted({int(m) for m in map_sessions}),
-           "methods": {}}
+    doc = {"dataset": dataset.name, "pairs": len(pairs), "tolerance_px": tol, "methods": {}}
+    if single or map_sessions is not None:        # a development protocol, not GRIEF's: say so
+        doc["single"] = bool(single)
+        doc["map_sessions"] = None if map_sessions is None else sorted({int(m) + 1 for m in map_sessions})
     for name, r in results.items():
         s = score(dataset, pairs, r.estimates, tol)
         entry = {"error_rate": s["error_rate"], "errors": s["errors"], "pairs": s["pairs"],

@@ -57,9 +57,7 @@ default_config = {
         "augment_copies": 11,      # single mode: augmented copies of the one training image
         "augment_shift_px": 0.0,   # fixed camera: no shifts
         "external_negatives": 4,  # other scenes' training images used as negatives
-        "conditions": [],          # single mode: synthetic conditions of the copies (signatures.augment.relight)
-        "colour_constancy": False,  # local exact histogram matching of each test image to the
-                                    # (first) training image before detection, 5 x 5 windows
+        "single_experience": {},   # overrides of signatures.experience.default_config
         "seed": 0,
     },
     "points": {"n_features": 2000, "ratio": 0.8, "mutual": True, "upright": False,
@@ -180,21 +178,27 @@ def correct_mask(train_xy, test_xy, tolerance_px: float = 15.0) -> np.ndarray:
 
 
 def mine_scene_bank(train_images, negatives, cfg: dict, n_jobs: int = 1):
-    """The scene's bank: mined from its training images (+ augmented copies when there is one)."""
-    from signatures import mining
+    """The scene's bank, mined from its training images (+ augmented copies when there is one).
+
+    Returns ``(bank, stats, settings)``: the bank, the mining statistics and what
+    :func:`signatures.experience.settings_for` made of the number of training images.
+    """
+    from signatures import experience, mining
     from signatures.augment import synthesise
 
     scfg = cfg["signatures"]
     images = list(train_images)
     offsets = [(0.0, 0.0)] * len(images)
-    P = int({**mining.default_config, **scfg["mining"]}["n_partitions"])
-    if len(images) < P or len(images) == 1:
+    # the training-data rule: settings by the number of real appearances (signatures.experience)
+    exp = experience.settings_for(len(images), scfg["mining"], scfg["single_experience"])
+    P = int({**mining.default_config, **exp["mining"]}["n_partitions"])
+    if len(images) < P or exp["single"]:
         rng = np.random.default_rng(int(scfg["seed"]))
         images, offsets = synthesise(images, offsets, int(scfg["augment_copies"]), rng,
-                                     float(scfg["augment_shift_px"]), tuple(scfg["conditions"]))
-    bank, stats = mining.mine_place(images, np.asarray(offsets, float), config=scfg["mining"],
+                                     float(scfg["augment_shift_px"]), exp["conditions"])
+    bank, stats = mining.mine_place(images, np.asarray(offsets, float), config=exp["mining"],
                                     negatives=negatives, n_jobs=n_jobs, rng=int(scfg["seed"]))
-    return bank, stats
+    return bank, stats, exp
 
 
 def signature_correspondences(bank, image, reference=None) -> tuple[np.ndarray, np.ndarray]:
@@ -296,10 +300,10 @@ def run_benchmark(root, methods=METHODS, train: str = "multi", config: dict | No
                         continue
                     for f in other.train[: int(cfg["signatures"]["external_negatives"])]:
                         negs.append(cv2.resize(load(f)[0], size, interpolation=cv2.INTER_AREA))
-                bank, stats = mine_scene_bank(train_imgs, negs, cfg, n_jobs=n_jobs)
+                bank, stats, exp = mine_scene_bank(train_imgs, negs, cfg, n_jobs=n_jobs)
                 mining_stats[sc.name] = {"classifiers": len(bank), "train_images": len(train_imgs),
                                          "seconds": round(stats.seconds, 2)}
-                ref = train_imgs[0] if cfg["signatures"]["colour_constancy"] else None
+                ref = train_imgs[0] if exp["colour_constancy"] else None
                 corr = lambda img, ref=ref: signature_correspondences(bank, img, ref)  # noqa: E731
             else:
                 feats = [_extract(im, m, cfg) for im in train_imgs]

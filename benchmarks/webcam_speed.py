@@ -22,9 +22,11 @@ busy machine) and the load average.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -39,15 +41,16 @@ DETECT_SIZE = (1024, 627)
 WINDOW_PX = 40.0
 
 
-def run(root, repeat: int = 10, seed: int = 0) -> dict:
-    """Measure the time targets on the webcam folder ``root`` (module docstring)."""
+def run(root, repeat: int = 10, seed: int = 0, config: dict | None = None) -> dict:
+    """Measure the time targets on the webcam folder ``root`` (module docstring); ``config``:
+    overrides of the webcam benchmark's settings (:data:`benchmarks.webcam.default_config`)."""
     from threadpoolctl import threadpool_limits
 
     from benchmarks import webcam
     from signatures import mining
     from surveys.errors import DataError
 
-    cfg = webcam.default_config
+    cfg = webcam._merged(webcam.default_config, config or {})
     scenes = webcam.load_scenes(root, "multi")
     scene = next((s for s in scenes if len(s.train) >= N_IMAGES), None)
     if scene is None:
@@ -93,7 +96,7 @@ def run(root, repeat: int = 10, seed: int = 0) -> dict:
             single = webcam.load_scenes(root, "single")[scenes.index(scene)].train
             one = [load(single[0])]
             t0, c0 = time.perf_counter(), time.process_time()
-            sbank, _ = webcam.mine_scene_bank(one, negatives, cfg, n_jobs=1)
+            sbank, _, _ = webcam.mine_scene_bank(one, negatives, cfg, n_jobs=1)
             out["mine_seconds_single"] = round(time.perf_counter() - t0, 2)
             out["mine_cpu_seconds_single"] = round(time.process_time() - c0, 2)
             out["single_bank_size"] = len(sbank)
@@ -110,8 +113,20 @@ def main(argv=None) -> int:
     ap.add_argument("dir", help="webcam folder, one sub-folder per scene (e.g. ../shared/data/webcam)")
     ap.add_argument("--repeat", type=int, default=10, help="detection repeats (median)")
     ap.add_argument("--json", help="write the result JSON here")
+    ap.add_argument("--config", default=None, metavar="JSON",
+                    help="JSON file of overrides of the webcam benchmark's settings")
     args = ap.parse_args(argv)
-    emit_json(run(args.dir, args.repeat), args.json)
+    config = None
+    if args.config:
+        from surveys.errors import DataError
+        try:
+            config = json.loads(Path(args.config).read_text())
+        except (OSError, ValueError) as exc:
+            raise DataError(args.config, f"cannot read the settings: {exc}") from None
+    out = run(args.dir, args.repeat, config=config)
+    if config:
+        out["config"] = config
+    emit_json(out, args.json)
     return 0
 
 

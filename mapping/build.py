@@ -50,7 +50,8 @@ from surveys.io import append_line
 from surveys.settings import merge_settings
 from surveys.geometry import invert
 from surveys.run import SurveyRun
-from signatures.augment import augment
+from signatures import experience
+from signatures.augment import synthesise
 from signatures import globaldesc
 from signatures.mining import mine_place
 from signatures.bank import default_config as bank_default_config
@@ -99,6 +100,9 @@ default_config = {
     "min_images": MIN_IMAGES,
     "max_frames_per_run": MAX_FRAMES_PER_RUN,
     "augment_shift_px": 8.0,      # max left/right shift of an augmented copy (a small heading change)
+    # overrides of signatures.experience.default_config: a place seen by one run only is mined with
+    # the single-experience settings (the rule counts runs, i.e. real appearances)
+    "single_experience": {},
     "descriptor": {},             # overrides of signatures.globaldesc.default_config (place retrieval)
 }
 
@@ -217,14 +221,11 @@ def mining_images(seed: int, views: list, images: list, config: dict | None = No
         for j in places_mod.neighbour_frames(v, per_run, pcfg["frame_step_m"], pcfg["spacing_m"] / 2)[1:]:
             out.append(v.run.image(int(j), gray=True))
     n_frames = len(out)
-    offsets = [[0.0, 0.0]] * n_frames
     rng = np.random.default_rng([int(seed), 19])
-    k = 0
-    while len(out) < int(cfg["min_images"]):
-        copy, shift = augment(out[k % n_frames], rng, float(cfg["augment_shift_px"]))
-        out.append(cv2.cvtColor(copy, cv2.COLOR_BGR2GRAY))
-        offsets.append([shift, 0.0])
-        k += 1
+    conditions = experience.settings_for(len(views), None, cfg["single_experience"])["conditions"]
+    out, offsets = synthesise(out, [[0.0, 0.0]] * n_frames, max(0, int(cfg["min_images"]) - n_frames),
+                              rng, float(cfg["augment_shift_px"]), conditions)
+    out = out[:n_frames] + [cv2.cvtColor(c, cv2.COLOR_BGR2GRAY) for c in out[n_frames:]]
     counts = {"frames_per_run": per_run, "frames": n_frames, "augmented": len(out) - n_frames}
     return out, np.asarray(offsets, dtype=float), counts
 
@@ -296,7 +297,9 @@ def mine_and_refine(views: list, negatives: list[np.ndarray], cfg: dict, rng: in
     camera, T_vc = ref.run.camera, ref.run.T_vehicle_camera
     images = [v.run.image(v.frame, gray=True) for v in views]
     mined_from, offsets, image_counts = mining_images(rng, views, images, cfg)
-    bank, mstats = mine_place(mined_from, offsets, config=cfg["mining"], negatives=negatives, n_jobs=1, rng=rng)
+    # the training-data rule (signatures.experience): a place seen by one run is a single experience
+    mcfg = experience.settings_for(len(views), cfg["mining"], cfg["single_experience"])["mining"]
+    bank, mstats = mine_place(mined_from, offsets, config=mcfg, negatives=negatives, n_jobs=1, rng=rng)
 
     window = _subsample(ref.window, ref.frame, cfg["max_window_frames"], ref.T_frame_window[:, :3, 3])
     rows = np.searchsorted(ref.window, window)

@@ -51,7 +51,7 @@ import cv2
 import numpy as np
 
 from signatures import hog as hogmod
-from signatures import mining
+from signatures import experience, mining
 from signatures.augment import augment, synthesise
 from signatures.colour import local_exact_histogram_match
 from surveys.settings import merge_settings
@@ -83,9 +83,8 @@ default_config = {
     "spread_sigma_px": 6.0,         # vote weight 1 / (1 + (spread_x / this)^2)^2
     "augment_copies": 11,           # sequence layout: augmented copies of the map image
     "augment_shift_px": 24.0,       # sequence layout: max left/right shift of a copy
-    "conditions": [],               # synthetic conditions of the copies (signatures.augment.relight)
-    "colour_constancy": False,      # live image: local exact histogram matching to the bank's first
-                                    # training image (5 x 5 windows) before detection
+    "single_experience": {},        # overrides of signatures.experience.default_config: what a bank
+                                    # from one real appearance is mined and detected with
     "seed": 0,
 }
 
@@ -212,7 +211,8 @@ class SignatureHeading:
             from surveys.grief import load
             dataset = load(dataset)
         self.dataset = dataset
-        self.config = merge_settings(default_config, config, "heading", open=("mining",))
+        self.config = merge_settings(default_config, config, "heading",
+                                     open=("mining", "single_experience"))
         self.n_jobs = int(n_jobs)
         self.progress = progress
         self.single = bool(single)
@@ -283,6 +283,9 @@ def train_bank(ds, place_index: int, train: list, live: int, cfg: dict):
     mcfg = dict(cfg["mining"])
     if cfg["max_classifiers"] is not None:
         mcfg["max_classifiers"] = int(cfg["max_classifiers"])
+    # the training-data rule: settings by the number of real appearances (signatures.experience)
+    exp = experience.settings_for(len(g.train), mcfg, cfg["single_experience"])
+    mcfg = exp["mining"]
     ref = g.train[0]
     images = [_load(place, s, scale) for s in g.train]
     offsets = [[place.displacement(ref, s) * scale if s != ref else 0.0, 0.0] for s in g.train]
@@ -290,7 +293,7 @@ def train_bank(ds, place_index: int, train: list, live: int, cfg: dict):
     if len(images) < int(mining._merge(mcfg)["n_partitions"]):
         # Too few appearances to partition: synthesised copies of the real images stand in.
         images, offsets = synthesise(images, offsets, int(cfg["augment_copies"]), rng,
-                                     float(cfg["augment_shift_px"]) * scale, tuple(cfg["conditions"]))
+                                     float(cfg["augment_shift_px"]) * scale, exp["conditions"])
     offsets = np.asarray(offsets, dtype=float)
     # Other places seen in the training sessions (never the live session).
     others = [(p, s) for p in range(len(ds.places)) if p != g.place
@@ -302,7 +305,8 @@ def train_bank(ds, place_index: int, train: list, live: int, cfg: dict):
     bank, stats = mining.mine_place(images, offsets, config=mcfg, negatives=negatives, n_jobs=1,
                                     rng=int(cfg["seed"]))
     st = {"place": g.place, "live": g.live, **stats.as_dict(), "bank_size": len(bank),
-          "appearances": len(g.train)}
+          "appearances": len(g.train), "single_experience": exp["single"],
+          "colour_constancy": exp["colour_constancy"]}
     return bank, images, map_offset, st
 
 
@@ -334,7 +338,7 @@ def _run_group(ds, g: _Group, cfg: dict):
         _, i, j = key
         if j not in det_live:
             live = _load(place, j, scale)
-            if cfg["colour_constancy"]:
+            if st["colour_constancy"]:
                 live = local_exact_histogram_match(live, images[0], (5, 5))
             live_pyr = hogmod.build_pyramid(live, bank.hog, levels=bank.levels())
             det_live[j] = bank.detect(live_pyr, windows=live_win, top_n=live_top)

@@ -91,6 +91,10 @@ default_config = {
     "whiten_radius": 1,           # whitening kernel half-width, cells
     "whiten_reg": 0.1,            # ridge on the background covariance, relative to its mean variance
     "lda_init": False,            # with whiten: the first filter is LDA (mean of the whitened positives)
+    # Multi-scale mining: every shape is also mined this many octaves coarser (a filter of about a
+    # quarter of the cells per octave, at least min_octave_cells); 0 = the paper's single scale.
+    "extra_octaves": 0,
+    "min_octave_cells": 6,
 }
 
 
@@ -524,10 +528,26 @@ def _same(a: np.ndarray, b: np.ndarray, tol: int) -> bool:
                 and np.all(np.abs(a[:, 2:] - b[:, 2:]) <= tol))
 
 
-def _mine_shape(pd: _Place, s_idx: int, box, kind: str):
+def _octave_geometry(box, cfg: dict, octave: int):
+    """(k, fh, fw) of a shape ``octave`` octaves coarser than its nominal level, or None when the
+    filter would have fewer than ``min_octave_cells`` cells."""
+    geo = shape_geometry(box, cfg)
+    if geo is None or octave == 0:
+        return geo
+    hc = cfg["hog"]
+    spo, cell = int(hc["scales_per_octave"]), int(hc["cell"])
+    k = geo[0] + octave * spo
+    s = float(hogmod.level_scale(k, spo))
+    fw, fh = round(float(box[2]) * s / cell), round(float(box[3]) * s / cell)
+    if fw < 1 or fh < 1 or fw * fh < int(cfg["min_octave_cells"]):
+        return None
+    return k, fh, fw
+
+
+def _mine_shape(pd: _Place, s_idx: int, box, kind: str, octave: int = 0):
     """Run the iterative clustering for one shape; returns (status, classifier | None, info)."""
     cfg = pd.cfg
-    geo = shape_geometry(box, cfg)
+    geo = _octave_geometry(box, cfg, octave)
     if geo is None:
         return "no_data", None, {"steps": 0}
     k_n, fh, fw = geo
@@ -722,7 +742,7 @@ def _mine_chunk(pd: _Place, items):
     with warnings.catch_warnings(), threadpool_limits(limits=1, user_api="blas"), \
             sklearn.config_context(skip_parameter_validation=True, assume_finite=True):
         warnings.simplefilter("ignore")   # libsvm iteration-limit warnings on degenerate shapes
-        return [(s, *_mine_shape(pd, s, box, kind)) for s, box, kind in items]
+        return [(s, *_mine_shape(pd, s, box, kind, o)) for s, box, kind, o in items]
 
 
 # ---------------------------------------------------------------------------------- API
@@ -785,7 +805,8 @@ def mine_place(images, offsets=None, config: dict | None = None, negatives=None,
     if offs.shape != (n, 2) or not np.all(np.isfinite(offs)):
         raise ValueError(f"offsets must be a finite ({n}, 2) array, got shape {offs.shape}")
     shapes = shapes if shapes is not None else candidate_shapes(*size, cfg["shapes"])
-    geos = [shape_geometry(b, cfg) for b in shapes.boxes]
+    octaves = range(int(cfg["extra_octaves"]) + 1)
+    geos = [_octave_geometry(b, cfg, o) for o in octaves for b in shapes.boxes]
     S = int(cfg["scale_search"])
     need = sorted({k for g in geos if g is not None for k in range(g[0] - S, g[0] + S + 1)})
     tp = time.perf_counter()
@@ -809,7 +830,10 @@ def mine_place(images, offsets=None, config: dict | None = None, negatives=None,
     t_pyr = time.perf_counter() - tp
     parts = partition_images(np.stack([appearance_descriptor(im) for im in images]), P)
     pd = _Place(pyramids, offs, parts, list(negative_pyramids), cfg, int(rng))
-    items = [(i, tuple(shapes.boxes[i]), shapes.kind_name(i)) for i in range(len(shapes))]
+    # item o * n + i: shape i at octave o (octave 0 alone: the paper's items, indices and seeds)
+    n_s = len(shapes)
+    items = [(o * n_s + i, tuple(shapes.boxes[i]), shapes.kind_name(i), o)
+             for o in octaves for i in range(n_s)]
     if n_jobs == 1:
         it = items
         if progress:
@@ -836,7 +860,7 @@ def mine_place(images, offsets=None, config: dict | None = None, negatives=None,
             _fold_whitening(classifiers, cfg)
     status = [r[1] for r in results]
     stats = MiningStats(
-        n_shapes=len(shapes), kept=len(classifiers), converged=converged,
+        n_shapes=len(items), kept=len(classifiers), converged=converged,
         rejected_not_converged=status.count("not_converged"),
         rejected_no_data=status.count("no_data"), rejected_textureless=status.count("textureless"),
         steps=np.array([r[3]["steps"] for r in results]), seconds=time.perf_counter() - t0,
