@@ -17,7 +17,8 @@ Methods:
 * ``signatures``: one bank per scene, mined (:func:`signatures.mining.mine_place`) from the training
   images with zero alignment offsets (fixed camera), with the training images of the *other* scenes as
   external negatives; in ``single`` mode the one image is joined by photometrically augmented copies
-  (:func:`signatures.augment.augment`).  Test images are never used in training.  Each classifier's best
+  (:func:`signatures.augment.synthesise`) and mined with the single-experience settings
+  (:mod:`signatures.experience`, ``--config '{"signatures": {"single_experience": {...}}}'``).  Test images are never used in training.  Each classifier's best
   detection in the whole test image (no prior, all scales the bank searches) is a correspondence with its
   position in the training images (``nominal_xy``).
 * ``orb``, ``sift``: OpenCV features (2000 per image, rotation-invariant, OpenCV's default detector

@@ -15,7 +15,10 @@ scene is estimated from a bank of scene signatures of that place that never saw 
   map image**: gamma, contrast, colour casts, blur, noise, desaturation, a synthetic "snow" that
   whitens smooth and bright regions and lifts the shadows, and small left/right shifts (the
   alignment offsets of the shifted copies are known exactly).  Summer frames of other places are
-  external negatives.  Live images are never used in training.
+  external negatives.  Live images are never used in training.  ``SignatureHeading(single=True)``
+  (``scenesig bench heading --single``) applies this protocol to a sessions layout too: each
+  session becomes a one-image map of its places, a development set for single-experience
+  settings.  Such banks take the settings :mod:`signatures.experience` keeps for one appearance.
 
 Detection: every classifier is searched in the map image near its trained position (the map image's
 alignment is known) and in the live image over the whole width and within ``live_search_y_px`` of
