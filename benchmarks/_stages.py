@@ -103,3 +103,19 @@ def emit_json(result: dict, path=None) -> None:
     print(text)
     if path:
         atomic_write_text(path, text + "\n")
+
+
+def read_config(path):
+    """A benchmark's ``--config JSON`` file as a dict (None for no path); a DataError names a file
+    that cannot be read or parsed."""
+    if not path:
+        return None
+    import json
+    from pathlib import Path
+
+    from surveys.errors import DataError
+
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise DataError(path, f"cannot read the settings: {exc}") from None

@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks._stages import read_config
 from scenesig.commands._types import positive_int
 from signatures import pointfeatures as pf
 from surveys.errors import DataError
@@ -489,15 +490,6 @@ def _sessions(text):
     return out
 
 
-def _read_config(path):
-    if not path:
-        return None
-    try:
-        return json.loads(Path(path).read_text())
-    except (OSError, ValueError) as exc:
-        raise DataError(path, f"cannot read the settings: {exc}") from None
-
-
 def run_from_args(args) -> int:
     """Entry point of ``scenesig bench heading`` (args: dataset, methods, json, figure[, jobs,
     baseline_preset, max_pairs])."""
@@ -508,7 +500,7 @@ def run_from_args(args) -> int:
                       max_pairs=getattr(args, "max_pairs", None),
                       single=bool(getattr(args, "single", False)),
                       map_sessions=_sessions(getattr(args, "map_sessions", None)),
-                      signatures_config=_read_config(getattr(args, "config", None)))
+                      signatures_config=read_config(getattr(args, "config", None)))
     except (ValueError, RuntimeError) as exc:
         print(f"scenesig bench heading: error: {exc}", file=sys.stderr)
         return 2

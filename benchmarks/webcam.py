@@ -463,17 +463,12 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 
 def main(argv=None) -> int:
     """``scenesig bench webcam ARGS``; a :class:`~surveys.errors.DataError` is left to the CLI's handler."""
-    from surveys.errors import DataError
+    from benchmarks._stages import read_config
     from surveys.io import atomic_write_text
 
     args = build_parser().parse_args(argv)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    config = None
-    if args.config:
-        try:
-            config = json.loads(Path(args.config).read_text())
-        except (OSError, ValueError) as exc:
-            raise DataError(args.config, f"cannot read the settings: {exc}") from None
+    config = read_config(args.config)
     summary, results, scenes = run_benchmark(args.dir, methods, args.train, config=config,
                                              exclude=args.exclude, n_jobs=args.jobs)
     if args.figure:

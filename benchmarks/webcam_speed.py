@@ -24,16 +24,14 @@ busy machine) and the load average.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from benchmarks._stages import emit_json
+from benchmarks._stages import emit_json, read_config
 from benchmarks._timing import median_ms
 
 __all__ = ["run", "main"]
@@ -123,13 +121,7 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=None, metavar="JSON",
                     help="JSON file of overrides of the webcam benchmark's settings")
     args = ap.parse_args(argv)
-    config = None
-    if args.config:
-        from surveys.errors import DataError
-        try:
-            config = json.loads(Path(args.config).read_text())
-        except (OSError, ValueError) as exc:
-            raise DataError(args.config, f"cannot read the settings: {exc}") from None
+    config = read_config(args.config)
     out = run(args.dir, args.repeat, config=config)
     if config:
         out["config"] = config
