@@ -188,3 +188,21 @@ def test_webcam_speed_reports_the_time_target_keys(tmp_path):
     assert doc["mine_seconds_per_bank_20_images"] > 0 and doc["detect_hz_1024x627"] > 0
     assert doc["detect_image_size"] == [1024, 627] and doc["threads"] == 1
     assert doc["single_bank_size"] >= 0
+
+
+@pytest.mark.heavy        # renders ten simulator views (~10 s on a quiet machine)
+def test_simulated_webcam_folder_follows_the_webcam_protocol(tmp_path):
+    from benchmarks import simcam, webcam
+
+    doc = simcam.render_folder(tmp_path / "cams", places=1, size=(128, 96))
+    assert doc["places"] == 1
+    scenes = webcam.load_scenes(tmp_path / "cams", "single", exclude=())
+    (sc,) = scenes
+    assert [f.stem for f in sc.train] == ["20200101_120000"]            # sunny noon trains
+    conds = dict(simcam.SCHEDULE)
+    assert [conds[f.stem] for f in sc.test] == ["night", "fog", "snow", "dusk", "rain"]
+    assert [webcam.period_of(webcam.hour_of(f.name)) for f in sc.test] == [
+        "night", "day", "day", "twilight", "day"]
+    night = cv2.imread(str(sc.test[0]))
+    sunny = cv2.imread(str(sc.train[0]))
+    assert night.shape == (96, 128, 3) and night.mean() < sunny.mean()
