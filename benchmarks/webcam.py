@@ -303,7 +303,8 @@ def run_benchmark(root, methods=METHODS, train: str = "multi", config: dict | No
                         negs.append(cv2.resize(load(f)[0], size, interpolation=cv2.INTER_AREA))
                 bank, stats, exp = mine_scene_bank(train_imgs, negs, cfg, n_jobs=n_jobs)
                 mining_stats[sc.name] = {"classifiers": len(bank), "train_images": len(train_imgs),
-                                         "seconds": round(stats.seconds, 2)}
+                                         "seconds": round(stats.seconds, 2),
+                                         "single_experience": exp["single"]}
                 ref = train_imgs[0] if exp["colour_constancy"] else None
                 corr = lambda img, ref=ref: signature_correspondences(bank, img, ref)  # noqa: E731
             else:
