@@ -1,6 +1,6 @@
 """Time targets of scene signatures on real webcam images: ``scenesig bench webcam-speed DIR --json OUT``.
 
-Two figures, both on **one core** (OpenCV ``setNumThreads(1)``, BLAS limited to one thread by
+The figures, all on **one core** (OpenCV ``setNumThreads(1)``, BLAS limited to one thread by
 threadpoolctl, ``n_jobs=1``), as :mod:`benchmarks.speed` measures training:
 
 * ``mine_seconds_per_bank_20_images`` -- :func:`signatures.mining.mine_place` on 20 training
