@@ -4,6 +4,9 @@ Where a place has been seen under few conditions -- one summer image of a GRIEF 
 or a map built from one to three survey runs -- mining gets more appearances to generalise over from
 altered copies of the images it has (gamma, contrast, colour casts, blur, noise, desaturation and a
 synthetic "snow"), each with a small known horizontal shift that stands in for a heading change.
+:func:`synthesise` appends such copies to a place's real images (heading benchmark, webcam benchmark,
+map builder); :func:`relight` imitates night, fog and snow more strongly, for the single-experience
+settings that ask for it (:mod:`signatures.experience`).
 """
 from __future__ import annotations
 
