@@ -76,7 +76,8 @@ def test_lifelong_stage(demo_out):
     """``--lifelong`` after the demo: two unseen-condition runs, the update, before/after rows, the report section."""
     assert main(["demo", "--preset", "tiny", "--out", str(demo_out), "--lifelong"]) == 0
     res = json.loads((demo_out / "lifelong" / "day-night" / "result" / "lifelong.json").read_text())
-    assert res["condition"] not in default_config["training"]
+    assert res["base"] == "day" and res["base_conditions"] == ["sunny", "overcast"]
+    assert res["condition"] not in res["base_conditions"]
     assert [(r["label"][0], r["map"]) for r in res["rows"]] == [("A", "before"), ("B", "before"), ("B", "after"),
                                                                  ("o", "before"), ("o", "after")]
     assert all(r["inliers_per_detection_mean"] is not None for r in res["rows"])
