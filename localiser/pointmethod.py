@@ -43,7 +43,7 @@ import numpy as np
 
 from mapping.pointmap import POINT_MAPS, keypoint_sigma, point_features, point_keyframes, point_map_covariances
 from mapping.store import MapStore
-from signatures.pointfeatures import PointFeatures, extract, match
+from signatures.pointfeatures import PointFeatures, active_feature_cache, extract, match
 from surveys.settings import merge_settings
 from surveys.geometry import Camera
 
@@ -299,8 +299,12 @@ class PointLocaliser(WeakLocaliser):
 
     # ------------------------------------------------------------------------------ detector
     def live_features(self, image: np.ndarray) -> PointFeatures:
-        """The live image's features (same extraction as the map keyframe's)."""
-        return extract(image, self.kind, n_features=int(self.config["n_features"]), config=self.config["features"])
+        """The live image's features (same extraction as the map keyframe's); inside a
+        :func:`signatures.pointfeatures.feature_cache` block, taken from its cache when another
+        localiser of the block has extracted them (``orb`` and ``orb-all`` replaying one run)."""
+        cache = active_feature_cache()
+        get = extract if cache is None else cache.extract
+        return get(image, self.kind, n_features=int(self.config["n_features"]), config=self.config["features"])
 
     def prepare(self, image: np.ndarray) -> LiveFrame:
         """Extract the live image's features (needs neither place nor prior: the replay runs it

@@ -84,8 +84,7 @@ def _simulate(world: Path, cfg: dict, jobs: int) -> dict:
 
 
 def _localise_task(map_root: str, run_root: str, out: str, entry: str, every: int) -> tuple[str, str, dict]:
-    """One localisation (module-level so joblib can ship it to a worker process); ``entry`` is a method
-    name, or ``<method>-none`` for the method without INS/GPS."""
+    """One localisation; ``entry`` is a method name, or ``<method>-none`` for the method without INS/GPS."""
     from localiser.replay import localise
 
     blind = entry.endswith("-none")
@@ -93,6 +92,72 @@ def _localise_task(map_root: str, run_root: str, out: str, entry: str, every: in
     metrics = localise(map_root, run_root, out, method=method, every=every, progress=False,
                        oracle="none" if blind else "ins")
     return Path(run_root).name, entry, metrics
+
+
+def _one_thread() -> None:
+    """A pool worker's OpenCV on one thread: the pool already keeps every core busy, and OpenCV's own
+    threads (two per worker by default) would only contend with the other worker (results do not
+    depend on it: OpenCV's parallel loops split rows, not sums)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def _localise_group(map_root: str, world: str, out: str, run: str, entries: list[str], every: int,
+                    pooled: bool) -> list[tuple[str, str, dict]]:
+    """One run's localisations with the given entries, one after the other in one process (a
+    module-level function so joblib can ship it to a worker).
+
+    The entries of a group are the point-feature baselines of one kind (``sift`` and ``sift-all``):
+    they replay the same frames with the same extraction settings, so the second one takes the live
+    features the first extracted (:func:`signatures.pointfeatures.feature_cache`; identical
+    results, half the extraction -- SIFT on a VGA frame costs ~0.13 s of CPU).
+    """
+    from signatures.pointfeatures import feature_cache
+
+    if pooled:
+        _one_thread()
+    with feature_cache():
+        return [_localise_task(map_root, str(Path(world) / run), str(Path(out) / run / e), e, every)
+                for e in entries]
+
+
+def _matching_task(map_root: str, world: str, live: list[str], reference: str, pooled: bool):
+    """The matching experiment (§4.2), run in the localisation pool beside the replays."""
+    from mapping.store import MapStore
+    from surveys.run import read_run
+
+    from .experiments import matching_experiment
+
+    if pooled:
+        _one_thread()
+    store = MapStore.open(map_root)
+    return matching_experiment(store, [read_run(Path(world) / n) for n in live],
+                               reference=read_run(Path(world) / reference), progress=False)
+
+
+#: Rough CPU cost of one live run's localisation per method (demo world, seconds), to start the
+#: longest jobs first so that the workers finish together; the matching experiment is one job.
+_COST = {"sift-all": 30.0, "sift": 25.0, "orb-all": 11.0, "signatures": 7.0, "signatures-none": 7.0, "orb": 5.0}
+_MATCHING_COST = 20.0
+
+
+def localise_groups(todo: list[tuple[str, str]]) -> list[tuple[str, list[str]]]:
+    """``(run, entry)`` pairs -> ``(run, [entry, ...])`` jobs: a run's point-feature entries of one kind
+    (``orb`` / ``orb-all``, ``sift`` / ``sift-all``, with or without INS/GPS) share a job, each other
+    entry is its own; the costliest first (:data:`_COST`)."""
+    from mapping.pointmap import KINDS
+
+    groups: dict = {}
+    for run, entry in todo:
+        kind = entry.removesuffix("-none").split("-")[0]
+        key = (run, kind) if kind in KINDS else (run, entry)
+        groups.setdefault(key, []).append(entry)
+    return sorted(((key[0], entries) for key, entries in groups.items()), key=lambda job: -_cost(job[1]))
+
+
+def _cost(entries) -> float:
+    return sum(_COST.get(e, 7.0) for e in entries)
 
 
 def _fmt(v, digits=2):
@@ -145,7 +210,6 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     from surveys.io import atomic_write_bytes
     from surveys.run import read_run
 
-    from .experiments import matching_experiment
     from .plots import write_matching
 
     cfg = merge_settings(default_config, config, "demo")
@@ -177,7 +241,7 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
 
     entries = list(cfg["methods"]) + [f"{m}-none" for m in cfg["no_oracle_methods"]]
     _log(f"3/5 localising {len(live_names)} live runs with {', '.join(entries)} (detector every {every} frames; "
-         f"-none: without INS/GPS)")
+         f"-none: without INS/GPS), and the matching experiment (§4.2) alongside")
     t = time.perf_counter()
     todo = []
     metrics = {}
@@ -192,28 +256,33 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
                 except ValueError:
                     pass
             todo.append((n, m))
-    # slowest first (SIFT against every training keyframe), so the two workers finish together
-    cost = {"sift-all": 0, "sift": 1, "orb-all": 2, "signatures": 3, "signatures-none": 3, "orb": 4}
-    todo.sort(key=lambda nm: cost.get(nm[1], 3))
-    if todo:
-        from tqdm import tqdm
+    # The localisations and the matching experiment are independent jobs in one pool of ``jobs``
+    # workers (the costliest first, so that the workers finish together).
+    from tqdm import tqdm
 
-        bar = tqdm(total=len(todo), desc="localise", unit="run")
-        par = Parallel(n_jobs=jobs, return_as="generator_unordered")
-        for n, m, met in par(delayed(_localise_task)(str(out / "map"), str(out / "world" / n),
-                                                      str(out / "localise" / n / m), m, every)
-                             for n, m in todo):
+    pooled = jobs > 1
+    args = (str(out / "map"), str(out / "world"))
+    jobs_todo = localise_groups(todo)
+    calls = [delayed(_localise_group)(*args, str(out / "localise"), n, group, every, pooled) for n, group in jobs_todo]
+    at = next((k for k, (_, group) in enumerate(jobs_todo) if _cost(group) < _MATCHING_COST), len(calls))
+    calls.insert(at, delayed(_matching_task)(*args, live_names, ref_name, pooled))
+    bar = tqdm(total=len(todo), desc="localise", unit="run")
+    par = Parallel(n_jobs=jobs, return_as="generator_unordered")
+    match_result = None
+    for res in par(calls):
+        if not isinstance(res, list):
+            match_result = res
+            continue
+        for n, m, met in res:
             metrics[(n, m)] = met
             bar.set_postfix_str(f"{n} {m}")
             bar.update(1)
-        bar.close()
+    bar.close()
     stages["localise"] = time.perf_counter() - t
 
-    _log("4/5 matching experiment (§4.2)")
+    _log("4/5 matching experiment (§4.2): figures")
     t = time.perf_counter()
-    store = MapStore.open(out / "map")
-    res = matching_experiment(store, [runs[n] for n in live_names], reference=runs[ref_name])
-    write_matching(res, store, out / "matching")
+    write_matching(match_result, MapStore.open(out / "map"), out / "matching")
     stages["matching"] = time.perf_counter() - t
 
     _log("5/5 report")

@@ -83,3 +83,18 @@ def test_lifelong_stage(demo_out):
     assert (demo_out / "lifelong" / "autumn" / "map" / "manifest.json").is_file()
     html = (demo_out / "report" / "index.html").read_text()
     assert "Lifelong map" in html and "lifelong.png" in html
+
+
+def test_localise_jobs_share_point_features_by_run_and_kind():
+    """A run's ORB entries share one job, its SIFT entries another (one extraction per frame); every other
+    entry is its own job; the costliest jobs come first."""
+    from scenesig.demo import localise_groups
+
+    entries = ["signatures", "orb", "sift", "orb-all", "sift-all", "signatures-none"]
+    jobs = localise_groups([(r, e) for r in ("a", "b") for e in entries])
+    assert sorted(map(tuple, (g for _, g in jobs))) == sorted(
+        [("orb", "orb-all"), ("sift", "sift-all"), ("signatures",), ("signatures-none",)] * 2)
+    assert [g for _, g in jobs[:2]] == [["sift", "sift-all"]] * 2 and {r for r, _ in jobs[:2]} == {"a", "b"}
+    assert sorted(e for _, g in jobs for e in g) == sorted(entries * 2)
+    # a resumed demo: only what is missing
+    assert localise_groups([("a", "sift-all"), ("b", "orb")]) == [("a", ["sift-all"]), ("b", ["orb"])]
