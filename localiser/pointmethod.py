@@ -7,7 +7,9 @@ the outputs and the metrics are the shared code of :mod:`localiser.pipeline` / :
 Set up as hloc users run point features.  Per frame, for the place the localiser chose:
 
 * **features** -- the live image's 2000 strongest upright ORB or SIFT features
-  (:func:`signatures.pointfeatures.extract`).
+  (:func:`signatures.pointfeatures.extract`); inside a :func:`signatures.pointfeatures.feature_cache`
+  block, localisers of one kind replaying the same run (``sift`` and ``sift-all``) extract each frame
+  once.
 * **point map** -- ``reference`` (methods ``orb``, ``sift``): the reference run's keyframe with its
   triangulated 3D points, the paper's baseline; ``all`` (``orb-all``, ``sift-all``): a keyframe from
   every training run at the place, all in the place frame (:func:`mapping.pointmap.build_point_features_all`);
