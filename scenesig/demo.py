@@ -87,8 +87,9 @@ def _simulate(world: Path, cfg: dict, jobs: int) -> dict:
                     camera_hz=float(cfg["camera_hz"]), jobs=jobs, overwrite=True)
 
 
-def _localise_task(map_root: str, run_root: str, out: str, entry: str, every: int) -> tuple[str, str, dict]:
-    """One localisation; ``entry`` is a method name, or ``<method>-none`` for the method without INS/GPS."""
+def _localise_task(map_root, run_root: str, out: str, entry: str, every: int) -> tuple[str, str, dict]:
+    """One localisation; ``entry`` is a method name, or ``<method>-none`` for the method without INS/GPS;
+    ``map_root`` the map folder or an open :class:`mapping.store.MapStore`."""
     from localiser.replay import localise
 
     blind = entry.endswith("-none")
@@ -115,14 +116,19 @@ def _localise_group(map_root: str, world: str, out: str, run: str, entries: list
     The entries of a group are the point-feature baselines of one kind (``sift`` and ``sift-all``):
     they replay the same frames with the same extraction settings, so the second one takes the live
     features the first extracted (:func:`signatures.pointfeatures.feature_cache`; identical
-    results, half the extraction -- SIFT on a VGA frame costs ~0.13 s of CPU).
+    results, half the extraction -- SIFT on a VGA frame costs ~0.13 s of CPU), and the places the
+    first one decoded (one map store, caching every place the run passes).
     """
+    from mapping.store import MapStore
     from signatures.pointfeatures import feature_cache
 
     if pooled:
         _one_thread()
+    store = MapStore.open(map_root)
+    if len(entries) > 1:             # every place the run passes stays decoded for the next replay
+        store = MapStore.open(map_root, cache_size=len(store))
     with feature_cache():
-        return [_localise_task(map_root, str(Path(world) / run), str(Path(out) / run / e), e, every)
+        return [_localise_task(store, str(Path(world) / run), str(Path(out) / run / e), e, every)
                 for e in entries]
 
 
