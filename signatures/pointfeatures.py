@@ -314,12 +314,11 @@ class FeatureCache:
 
 
 def _pack(f: PointFeatures) -> tuple:
+    """Read-only copies of the arrays; descriptors as uint8 when that loses nothing."""
     arrays = [np.array(a) for a in (f.xy, f.response, f.size, f.angle, f.octave)]
     desc = np.array(f.descriptors)
     dtype = desc.dtype
-    if dtype != np.uint8 and desc.size and np.all(desc == np.round(desc)) and desc.min() >= 0 and desc.max() <= 255:
-        desc = desc.astype(np.uint8)
-    elif dtype != np.uint8 and not desc.size:
+    if not desc.size or (np.array_equal(desc, np.round(desc)) and desc.min() >= 0 and desc.max() <= 255):
         desc = desc.astype(np.uint8)
     for a in (*arrays, desc):
         a.setflags(write=False)
