@@ -43,7 +43,7 @@ from pathlib import Path
 
 from surveys.settings import merge_settings
 
-__all__ = ["default_config", "run_demo", "build_demo_report"]
+__all__ = ["default_config", "run_demo", "build_demo_report", "localise_live_runs", "localise_groups"]
 
 default_config = {
     "preset": "demo",
@@ -170,6 +170,54 @@ def _cost(entries) -> float:
     return sum(_COST.get(e, 7.0) for e in entries)
 
 
+def localise_live_runs(map_root, world, out, live: list[str], reference: str, entries: list[str], every: int,
+                       jobs: int = 2, progress: bool = True):
+    """The demo's localisation stage: every live run with every entry, and the matching experiment.
+
+    ``world/RUN`` are the survey runs, ``out/RUN/ENTRY`` the localisations (one that already has its
+    ``metrics.json`` is read, not redone).  The jobs (:func:`localise_groups`) and the matching
+    experiment run in one pool of ``jobs`` workers, the costliest first, so the workers finish together.
+
+    Returns
+    -------
+    metrics : dict ``(run, entry) -> metrics.json`` content.
+    matching : the :class:`scenesig.experiments.MatchingResult` on the live runs.
+    """
+    from joblib import Parallel, delayed
+    from tqdm import tqdm
+
+    map_root, world, out = str(map_root), str(world), Path(out)
+    todo = []
+    metrics = {}
+    for n in live:
+        for m in entries:
+            done = out / n / m / "metrics.json"
+            if done.is_file():
+                try:
+                    metrics[(n, m)] = json.loads(done.read_text())
+                    continue
+                except ValueError:
+                    pass
+            todo.append((n, m))
+    pooled = jobs > 1
+    jobs_todo = localise_groups(todo)
+    calls = [delayed(_localise_group)(map_root, world, str(out), n, group, every, pooled) for n, group in jobs_todo]
+    at = next((k for k, (_, group) in enumerate(jobs_todo) if _cost(group) < _MATCHING_COST), len(calls))
+    calls.insert(at, delayed(_matching_task)(map_root, world, list(live), reference, pooled))
+    bar = tqdm(total=len(todo), desc="localise", unit="run", disable=not progress)
+    matching = None
+    for res in Parallel(n_jobs=jobs, return_as="generator_unordered")(calls):
+        if not isinstance(res, list):
+            matching = res
+            continue
+        for n, m, met in res:
+            metrics[(n, m)] = met
+            bar.set_postfix_str(f"{n} {m}")
+            bar.update(1)
+    bar.close()
+    return metrics, matching
+
+
 def _fmt(v, digits=2):
     return "-" if v is None else f"{v:.{digits}f}"
 
@@ -213,8 +261,6 @@ def build_demo_report(out, config: dict | None = None, live_names: list[str] | N
 
 def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     """Run the whole demo into ``out``; returns ``summary.json``'s content."""
-    from joblib import Parallel, delayed
-
     from mapping.build import build_map
     from mapping.store import MapStore
     from surveys.io import atomic_write_bytes
@@ -253,41 +299,8 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     _log(f"3/5 localising {len(live_names)} live runs with {', '.join(entries)} (detector every {every} frames; "
          f"-none: without INS/GPS), and the matching experiment (§4.2) alongside")
     t = time.perf_counter()
-    todo = []
-    metrics = {}
-    for n in live_names:
-        for m in entries:
-            folder = out / "localise" / n / m
-            done = folder / "metrics.json"
-            if done.is_file():
-                try:
-                    metrics[(n, m)] = json.loads(done.read_text())
-                    continue
-                except ValueError:
-                    pass
-            todo.append((n, m))
-    # The localisations and the matching experiment are independent jobs in one pool of ``jobs``
-    # workers (the costliest first, so that the workers finish together).
-    from tqdm import tqdm
-
-    pooled = jobs > 1
-    args = (str(out / "map"), str(out / "world"))
-    jobs_todo = localise_groups(todo)
-    calls = [delayed(_localise_group)(*args, str(out / "localise"), n, group, every, pooled) for n, group in jobs_todo]
-    at = next((k for k, (_, group) in enumerate(jobs_todo) if _cost(group) < _MATCHING_COST), len(calls))
-    calls.insert(at, delayed(_matching_task)(*args, live_names, ref_name, pooled))
-    bar = tqdm(total=len(todo), desc="localise", unit="run")
-    par = Parallel(n_jobs=jobs, return_as="generator_unordered")
-    match_result = None
-    for res in par(calls):
-        if not isinstance(res, list):
-            match_result = res
-            continue
-        for n, m, met in res:
-            metrics[(n, m)] = met
-            bar.set_postfix_str(f"{n} {m}")
-            bar.update(1)
-    bar.close()
+    metrics, match_result = localise_live_runs(out / "map", out / "world", out / "localise", live_names, ref_name,
+                                               entries, every, jobs)
     stages["localise"] = time.perf_counter() - t
 
     _log("4/5 matching experiment (§4.2): figures")
