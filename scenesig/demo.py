@@ -146,9 +146,10 @@ def _matching_task(map_root: str, world: str, live: list[str], reference: str, p
                                reference=read_run(Path(world) / reference), progress=False)
 
 
-#: Rough CPU cost of one live run's localisation per method (demo world, seconds), to start the
-#: longest jobs first so that the workers finish together; the matching experiment is one job.
-_COST = {"sift-all": 30.0, "sift": 25.0, "orb-all": 11.0, "signatures": 7.0, "signatures-none": 7.0, "orb": 5.0}
+#: CPU seconds of one live run's replay per entry, each on its own (demo world, the snow run), and of
+#: the matching experiment: only their order matters, to start the longest jobs first so that the
+#: workers finish together.
+_COST = {"sift-all": 37.0, "sift": 30.0, "orb-all": 14.0, "orb": 9.0, "signatures": 8.6, "signatures-none": 7.8}
 _MATCHING_COST = 20.0
 
 
@@ -167,7 +168,7 @@ def localise_groups(todo: list[tuple[str, str]]) -> list[tuple[str, list[str]]]:
 
 
 def _cost(entries) -> float:
-    return sum(_COST.get(e, 7.0) for e in entries)
+    return sum(_COST.get(e, 8.0) for e in entries)
 
 
 def localise_live_runs(map_root, world, out, live: list[str], reference: str, entries: list[str], every: int,
