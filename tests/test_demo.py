@@ -75,14 +75,14 @@ def test_rerun_reuses_outputs(demo_out, capsys):
 def test_lifelong_stage(demo_out):
     """``--lifelong`` after the demo: two unseen-condition runs, the update, before/after rows, the report section."""
     assert main(["demo", "--preset", "tiny", "--out", str(demo_out), "--lifelong"]) == 0
-    res = json.loads((demo_out / "lifelong" / "autumn" / "result" / "lifelong.json").read_text())
+    res = json.loads((demo_out / "lifelong" / "day-night" / "result" / "lifelong.json").read_text())
     assert res["condition"] not in default_config["training"]
     assert [(r["label"][0], r["map"]) for r in res["rows"]] == [("A", "before"), ("B", "before"), ("B", "after"),
                                                                  ("o", "before"), ("o", "after")]
     assert all(r["inliers_per_detection_mean"] is not None for r in res["rows"])
-    assert (demo_out / "lifelong" / "autumn" / "map" / "manifest.json").is_file()
+    assert (demo_out / "lifelong" / "day-night" / "map" / "manifest.json").is_file()
     html = (demo_out / "report" / "index.html").read_text()
-    assert "Lifelong map" in html and "lifelong.png" in html
+    assert "Lifelong map" in html and "lifelong_day-night.png" in html
 
 
 def test_localise_jobs_share_point_features_by_run_and_kind():
