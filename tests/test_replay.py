@@ -284,7 +284,7 @@ def test_demo_job_shares_features_and_places_with_the_same_outputs(tiny_fast, tm
     res = _localise_group(str(map_root), str(live.root.parent), str(tmp_path / "job"), live.name,
                           ["orb", "orb-all"], 1, False)
     assert [(r, e) for r, e, _ in res] == [(live.name, "orb"), (live.name, "orb-all")]
-    # the second replay took the first one's features and places
+    # the second replay (the first one's features and decoded places) equals a replay on its own
     alone = localise(map_root, live.root, tmp_path / "alone", method="orb-all", every=1, progress=False,
                      figure=False)
     _same_outputs(tmp_path / "alone", tmp_path / "job" / live.name / "orb-all")

@@ -49,6 +49,7 @@ default_config = {
     "jpeg_quality": 95,
 }
 
+
 def _world(preset: str, seed: int) -> World:
     """One World per (preset, seed) per process (workers build their own, identically), the one
     :func:`surveys.sim.views.get_world` keeps: a pool worker that rendered runs then renders the
