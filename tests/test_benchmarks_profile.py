@@ -48,6 +48,8 @@ def test_stage_timer_is_exclusive_and_restores(monkeypatch):
     assert timer.calls == {"a": 1, "b": 2}
     # outer is charged its own 1 s, not the 4 s including the inner call it made
     assert timer.seconds == {"a": 1.0, "b": 6.0} and timer.cpu_seconds == {"a": 1.0, "b": 6.0}
+    assert {k: dict(v) for k, v in timer.by_thread.items()} == {"a": {"MainThread": [1.0, 1.0]},
+                                                               "b": {"MainThread": [6.0, 6.0]}}
     d = timer.as_dict(per=2)
     assert d["b"] == {"ms": 6000.0, "cpu_ms": 6000.0, "calls": 2, "ms_per": 3000.0, "cpu_ms_per": 3000.0}
 
