@@ -20,6 +20,7 @@ of each level whose features are computed at all.
 from __future__ import annotations
 
 import contextlib
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,12 +48,17 @@ default_config = {
 }
 
 _BLAS = None
+_BLAS_LIMIT = threading.local()      # the limit this thread's enclosing limit_blas_threads set
 
 
 def limit_blas_threads(n: int | None):
-    """Context limiting numpy's BLAS to ``n`` threads (no-op for None or without threadpoolctl)."""
+    """Context limiting numpy's BLAS to ``n`` threads (no-op for None or without threadpoolctl).
+
+    Inside an enclosing context of the same thread with the same ``n`` it is a no-op too (setting
+    and restoring a limit costs ~0.1 ms; the localiser's detector and the bank both ask for one).
+    """
     global _BLAS
-    if n is None:
+    if n is None or getattr(_BLAS_LIMIT, "n", None) == int(n):
         return contextlib.nullcontext()
     if _BLAS is None:
         try:
@@ -62,7 +68,18 @@ def limit_blas_threads(n: int | None):
             _BLAS = False
     if _BLAS is False:
         return contextlib.nullcontext()
-    return _BLAS.limit(limits=int(n), user_api="blas")
+    return _limited(int(n))
+
+
+@contextlib.contextmanager
+def _limited(n: int):
+    outer = getattr(_BLAS_LIMIT, "n", None)
+    with _BLAS.limit(limits=n, user_api="blas"):
+        _BLAS_LIMIT.n = n
+        try:
+            yield
+        finally:
+            _BLAS_LIMIT.n = outer
 
 
 def _sigmoid(z):
