@@ -235,7 +235,10 @@ class Bank:
     def select(self, indices) -> "Bank":
         """A bank with the classifiers at ``indices`` (int array, slice or boolean mask)."""
         idx = np.arange(len(self))[indices]
-        return Bank([self.classifiers[i] for i in np.atleast_1d(idx)], self.image_size, self.meta)
+        sub = Bank.__new__(Bank)      # the classifiers share this bank's HOG parameters: no re-check
+        sub.classifiers = [self.classifiers[i] for i in np.atleast_1d(idx)]
+        sub.image_size, sub.meta, sub.hog = self.image_size, dict(self.meta), dict(self.hog)
+        return sub
 
     def best(self, n: int) -> "Bank":
         """The ``n`` classifiers of highest mining quality (NaN quality last)."""
@@ -614,7 +617,8 @@ def _score_group(feat, fw, members, classifiers, k) -> list:
         rows.append(w.reshape(w.shape[0], fw * FEATURE_DIM))
         offs.append(o)
         o += w.shape[0]
-    wmat = np.concatenate(rows, axis=0).T                        # (fw*31, sum fh)
+    # (fw*31, sum fh); one member's filter is used in place (the same layout as the stacked copy)
+    wmat = (rows[0] if len(rows) == 1 else np.concatenate(rows, axis=0)).T
     resp = (x_unrolled @ wmat).reshape(nr, ncol, o)             # row responses
     s0, s1, s2 = resp.strides
     out = []
