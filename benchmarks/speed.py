@@ -7,7 +7,8 @@ seed=0, n=31)``; the JSON's ``images`` names them):
   296 candidate shapes, pyramids included, on **one core** (BLAS, OpenCV and joblib limited to one
   thread);
 * ``detect_ms_per_frame`` -- one-pass detection of banks of 50 and 200 classifiers on a 640x480
-  frame, whole-image search, pyramid included, on **two cores** (OpenCV on two threads; the filter
+  frame, whole-image search, pyramid included, on **two cores** (the pyramid levels, each described
+  then scored, on two threads -- the bank's ``threads`` default; OpenCV on two threads; the filter
   multiplies on one BLAS thread, the bank's ``blas_threads`` default); the banks are drawn from the
   classifiers mined above (with repetition when fewer survived, so filter sizes and levels are
   realistic).  ``detect_ms_per_frame_windowed`` repeats it with +-40-px search windows, as the
