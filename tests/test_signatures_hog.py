@@ -129,14 +129,19 @@ def test_pyramid_regions_hold_exactly_the_whole_levels_features():
 
 def test_thread_map_keeps_order_raises_and_nests():
     import threading
-    names = set()
+
+    import cv2
+    names, cv_threads = set(), set()
+    before = cv2.getNumThreads()
 
     def square(x):
         names.add(threading.current_thread().name)
+        cv_threads.add(cv2.getNumThreads())
         return x * x
 
     items = list(range(9))
     assert hog.thread_map(square, items, threads=2, cost=items) == [x * x for x in items]
+    assert cv_threads == {1} and cv2.getNumThreads() == before      # OpenCV on one thread meanwhile
     assert hog.thread_map(square, items, threads=1) == [x * x for x in items]
     assert hog.thread_map(square, [], threads=2) == []
 
@@ -149,6 +154,7 @@ def test_thread_map_keeps_order_raises_and_nests():
         hog.thread_map(boom, items, threads=2)
     # A call from inside a pool worker (its only helper busy) must not wait for itself.
     assert hog.thread_map(lambda x: sum(hog.thread_map(square, range(x), threads=2)), [3, 4], threads=2) == [5, 14]
+    assert cv2.getNumThreads() == before
 
 
 @pytest.mark.parametrize("threads", [2, 3])
