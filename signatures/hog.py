@@ -576,6 +576,18 @@ def _opencv_single_threaded():
                 cv2.setNumThreads(_CV_STATE["saved"])
 
 
+def _forget_pools() -> None:
+    """In a forked child: the parent's pool threads do not exist there; start afresh."""
+    global _POOLS_LOCK, _CV_LOCK
+    _POOLS.clear()
+    _POOLS_LOCK, _CV_LOCK = threading.Lock(), threading.Lock()
+    _CV_STATE.update(users=0, saved=None)
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pools)
+
+
 def _pool(workers: int):
     with _POOLS_LOCK:
         pool = _POOLS.get(workers)

@@ -167,3 +167,14 @@ def test_pyramid_on_threads_equals_the_serial_pyramid(threads):
         assert a.levels.keys() == b.levels.keys() and a.regions == b.regions and a.sizes == b.sizes
         for k in a.levels:
             assert np.array_equal(a.levels[k], b.levels[k])
+
+
+def test_thread_map_works_in_a_forked_child():
+    import multiprocessing as mp
+    import os
+
+    if not hasattr(os, "fork"):
+        pytest.skip("no fork on this platform")
+    hog.thread_map(abs, [1, -2, 3], threads=2)            # the parent's pool exists now
+    with mp.get_context("fork").Pool(1) as pool:
+        assert pool.apply(hog.thread_map, (abs, [-1, -2, -3], 2)) == [1, 2, 3]
