@@ -25,7 +25,12 @@ Each stage has ``ms`` (wall, exclusive: a stage called inside another is charged
 ``cpu_ms`` (CPU time of the thread that ran it), ``calls``, both per detector frame, and
 ``threads``.  ``realtime_factor`` and ``wall_seconds`` are the replay's own (data duration / wall
 time of the loop); ``cpu_seconds`` is the process CPU time of the loop.  On a loaded machine wall
-times include waiting for a core and CPU times do not: compare CPU times there.
+times include waiting for a core and CPU times do not: compare CPU times there.  On Linux,
+``main_thread_queued_seconds`` is the time the replay's thread spent runnable but waiting for a
+core (``/proc/thread-self/schedstat``), and ``realtime_factor_unqueued`` the realtime factor with
+it taken out -- an estimate of the idle-machine figure that also works under load (conservative
+with ``--threads 2``: a worker thread's own waits for a core, which the replay's thread waits
+out, stay in).
 """
 from __future__ import annotations
 
@@ -56,6 +61,15 @@ def _targets():
             (MapStore, "nearest_place", "place_choice"), (Localiser, "place_ahead", "place_choice")]
 
 
+def _queued_seconds() -> float | None:
+    """Time the calling thread has spent runnable, waiting for a core (Linux schedstat; else None)."""
+    try:
+        with open("/proc/thread-self/schedstat") as f:
+            return int(f.read().split()[1]) / 1e9
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def profile_localise(map_root, run_root, method: str = "signatures", every: int = 2,
                      prefetch: bool = True, threads: int = 2) -> dict:
     """Replay ``run_root`` against ``map_root`` with stage timers (module docstring)."""
@@ -67,6 +81,7 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
     store = MapStore.open(map_root)
     run = read_run(run_root)
     timer = StageTimer()
+    q0 = _queued_seconds()
     with timer.patch(*_targets()):
         c0, m0 = time.process_time(), time.thread_time()
         config = {"prefetch": bool(prefetch)}
@@ -74,6 +89,7 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
             config["method"] = {"detector": {"threads": int(threads)}}
         res = replay(store, run, method, every=every, config=config)
         cpu, main_cpu = time.process_time() - c0, time.thread_time() - m0
+    q1 = _queued_seconds()
     tm = res.timings
     n_det = int(res.detector_ran.sum())
     stages = timer.as_dict(per=max(n_det, 1))
@@ -93,6 +109,9 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
             "frames": len(res.times), "detector_frames": n_det, "duration_s": round(tm["duration_s"], 3),
             "wall_seconds": round(tm["wall_seconds"], 3), "cpu_seconds": round(cpu, 3),
             "realtime_factor": round(tm["realtime_factor"], 3),
+            "main_thread_queued_seconds": None if q0 is None else round(q1 - q0, 3),
+            "realtime_factor_unqueued": None if q0 is None else
+            round(tm["duration_s"] / max(tm["wall_seconds"] - (q1 - q0), 1e-9), 3),
             "ms_per_detection": tm["ms_per_detection"], "ms_per_solve": tm["ms_per_solve"],
             "localised_fraction": float(res.localised.sum()) / max(n_det, 1), "failures": int(res.failures),
             "stages": stages}

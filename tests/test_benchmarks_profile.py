@@ -80,3 +80,6 @@ def test_profile_localise_reports_the_stages(tmp_path, capsys):
     assert st["image_decode"]["calls"] == res["detector_frames"]
     assert st["graph_update"]["calls"] > 0 and st["snap"]["calls"] >= res["frames"]
     assert "bookkeeping" in st and res["realtime_factor"] > 0
+    if res["main_thread_queued_seconds"] is not None:                  # Linux
+        assert 0 <= res["main_thread_queued_seconds"] <= res["wall_seconds"]
+        assert res["realtime_factor_unqueued"] >= res["realtime_factor"]
