@@ -12,10 +12,14 @@ Classifiers that search the same pyramid level and have the same filter width sh
 multiply: the level's features are unrolled along x only (each row of the unrolled matrix is
 ``fw`` consecutive cells, ``fw * 31`` values), multiplied once by the stacked rows of all the
 group's filters, and each filter's score map is the sum of its ``fh`` row responses along a
-diagonal (a strided view, no copy).  The multiply is the whole cost (BLAS, multi-threaded); the
+diagonal (a strided view, no copy).  The multiply is most of the scoring cost (BLAS); the
 unrolled matrix is ``fw`` times the level size, not ``fw * fh`` times as a full im2col would be.
 Search windows restrict the rows and columns that are unrolled, and (:meth:`Bank.pyramid`) the cells
 of each level whose features are computed at all.
+
+Given an image, :meth:`Bank.detect` describes and scores each level as one task and runs the
+levels on ``threads`` threads (:func:`signatures.hog.thread_map`): a level's HOG and its filter
+responses are computed exactly as one thread would, so the detections do not depend on the count.
 """
 from __future__ import annotations
 
@@ -28,8 +32,8 @@ import numpy as np
 from surveys.settings import merge_settings
 
 from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
-from signatures.hog import (assemble_pyramid, build_level, level_plan, level_scale, level_size, thread_map,
-                            to_gray_float, tune_malloc, window_cell)
+from signatures.hog import (REGION_MARGIN_CELLS, assemble_pyramid, build_level, level_plan, level_scale,
+                            level_size, thread_map, to_gray_float, tune_malloc, window_cell)
 
 __all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce", "limit_blas_threads"]
 
@@ -433,9 +437,7 @@ class Bank:
         need = sorted(set().union(*levels)) if len(self) else []
         plan = level_plan(size, cfg, **_pyramid_extent(table, need, windows))
         jobs = _jobs(table)
-        at_level: dict[int, list] = {}
-        for key in jobs:
-            at_level.setdefault(key[0], []).append(key)
+        at_level = _by_level(jobs)
 
         def level_task(p):
             k, lsize, box = p
@@ -468,11 +470,11 @@ def _pyramid_extent(table, need, windows) -> dict:
 def _level_cost(p, cfg) -> float:
     """Pixels a :func:`signatures.hog.build_level` task of :func:`signatures.hog.level_plan` describes
     (to start the largest levels first)."""
-    k, (lw, lh), box = p
+    _, (lw, lh), box = p
     if box is None:
         return float(lw * lh)
-    cell = int(cfg["cell"])
-    return float(min(lh, (box[1] - box[0] + 4) * cell) * min(lw, (box[3] - box[2] + 4) * cell))
+    cell, m = int(cfg["cell"]), 2 * REGION_MARGIN_CELLS
+    return float(min(lh, (box[1] - box[0] + m) * cell) * min(lw, (box[3] - box[2] + m) * cell))
 
 
 def _compact(a: np.ndarray) -> np.ndarray:
@@ -542,9 +544,7 @@ def _score_all(classifiers, pyr: HogPyramid, levels, windows, threads: int = 1):
                              f"rows {r0[j]}..{r1[j] + fh[j] - 1}, columns {c0[j]}..{c1[j] + fw[j] - 1} "
                              "(build it with Bank.pyramid and the same windows and levels)")
     jobs = _jobs(table)
-    at_level: dict[int, list] = {}
-    for key in jobs:
-        at_level.setdefault(key[0], []).append(key)
+    at_level = _by_level(jobs)
     done = thread_map(lambda keys: {key: _score_job(pyr.levels[key[0]], key, jobs[key], classifiers) for key in keys},
                       list(at_level.values()), threads, cost=[pyr.levels[ks[0][0]].size for ks in at_level.values()])
     scored = {}
@@ -561,6 +561,14 @@ def _jobs(table) -> dict:
     for row in zip(i.tolist(), k.tolist(), fw.tolist(), r0.tolist(), r1.tolist(), c0.tolist(), c1.tolist()):
         jobs.setdefault((row[1], row[2]), []).append((row[0], row[3], row[4], row[5], row[6]))
     return jobs
+
+
+def _by_level(jobs: dict) -> dict:
+    """``{k: [(k, fw), ...]}``: the groups of :func:`_jobs` per level, in their order."""
+    at_level: dict[int, list] = {}
+    for key in jobs:
+        at_level.setdefault(key[0], []).append(key)
+    return at_level
 
 
 def _collect(n: int, jobs: dict, scored: dict) -> list:

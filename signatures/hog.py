@@ -23,7 +23,8 @@ is the input resolution, ``k = scales_per_octave`` half of it.  A classifier sto
 A detector that only searches windows needs a fraction of each level: :func:`build_pyramid` with
 ``regions`` resizes (:func:`resize_area_region`, OpenCV's area decimation restricted to the region)
 and describes only a cell box per level plus :data:`REGION_MARGIN_CELLS`, and those cells are bit for
-bit the whole level's.
+bit the whole level's.  Levels are independent: :func:`build_pyramid` (and the bank's detection)
+can compute them on several threads (:func:`thread_map`) with the same result.
 
 ``scenesig bench hog [IMAGE]`` times one level and a pyramid.
 """
