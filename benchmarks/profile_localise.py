@@ -61,19 +61,11 @@ def _targets():
             (MapStore, "nearest_place", "place_choice"), (Localiser, "place_ahead", "place_choice")]
 
 
-def _queued_seconds() -> float | None:
-    """Time the calling thread has spent runnable, waiting for a core (Linux schedstat; else None)."""
-    try:
-        with open("/proc/thread-self/schedstat") as f:
-            return int(f.read().split()[1]) / 1e9
-    except (OSError, IndexError, ValueError):
-        return None
-
-
 def profile_localise(map_root, run_root, method: str = "signatures", every: int = 2,
                      prefetch: bool = True, threads: int = 2) -> dict:
     """Replay ``run_root`` against ``map_root`` with stage timers (module docstring)."""
     from benchmarks._stages import StageTimer
+    from benchmarks._timing import queued_seconds
     from localiser.replay import replay
     from mapping.store import MapStore
     from surveys.run import read_run
@@ -81,7 +73,7 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
     store = MapStore.open(map_root)
     run = read_run(run_root)
     timer = StageTimer()
-    q0 = _queued_seconds()
+    q0 = queued_seconds()
     with timer.patch(*_targets()):
         c0, m0 = time.process_time(), time.thread_time()
         config = {"prefetch": bool(prefetch)}
@@ -89,7 +81,7 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
             config["method"] = {"detector": {"threads": int(threads)}}
         res = replay(store, run, method, every=every, config=config)
         cpu, main_cpu = time.process_time() - c0, time.thread_time() - m0
-    q1 = _queued_seconds()
+    q1 = queued_seconds()
     tm = res.timings
     n_det = int(res.detector_ran.sum())
     stages = timer.as_dict(per=max(n_det, 1))

@@ -83,3 +83,14 @@ def test_profile_localise_reports_the_stages(tmp_path, capsys):
     if res["main_thread_queued_seconds"] is not None:                  # Linux
         assert 0 <= res["main_thread_queued_seconds"] <= res["wall_seconds"]
         assert res["realtime_factor_unqueued"] >= res["realtime_factor"]
+
+
+def test_median_ms_unqueued_is_at_most_the_wall_time():
+    from benchmarks._timing import median_ms_unqueued, queued_seconds
+
+    wall, unqueued = median_ms_unqueued(lambda: sum(range(20000)), repeat=5)
+    assert wall > 0
+    if queued_seconds() is None:                                       # not Linux
+        assert unqueued is None
+    else:
+        assert 0 <= unqueued <= wall
