@@ -47,8 +47,10 @@ default_config = {
     # and a fixed count gives the same sums, the same detections, on every machine.
     "blas_threads": 1,
     # Pyramid levels described and scored at once (each level's features and filter responses are
-    # one task; the levels are independent, so the detections are the same for any count).
-    "threads": 2,
+    # one task; the levels are independent, so the detections are the same for any count).  One by
+    # default: mining and map building already run one process per core; the localiser's detector
+    # asks for two (localiser.detector.default_config).
+    "threads": 1,
 }
 
 _BLAS = None

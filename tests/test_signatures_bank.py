@@ -167,7 +167,7 @@ def test_windowed_pyramid_computes_less_and_detects_the_same():
     for f in ("x", "y", "score", "prob", "level"):
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
         np.testing.assert_array_equal(getattr(c, f), getattr(b, f))
-    # Levels described and scored on two threads (the default) or one: the same detections.
+    # Levels described and scored on one thread (the default) or two: the same detections.
     for pyr_or_img in (img, full):
         for wins in (win, None):
             one = bank.detect(pyr_or_img, windows=wins, levels=levels, config={"threads": 1})
