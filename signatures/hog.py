@@ -589,6 +589,14 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_pools)
 
 
+def _usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
 def _pool(workers: int):
     with _POOLS_LOCK:
         pool = _POOLS.get(workers)
@@ -610,7 +618,7 @@ def thread_map(fn, items, threads: int = 1, cost=None) -> list:
     (:func:`_opencv_single_threaded`).  The first exception raised by ``fn`` is re-raised.
     """
     items = list(items)
-    threads = max(1, min(int(threads), len(items), os.cpu_count() or 1))
+    threads = max(1, min(int(threads), len(items), _usable_cpus()))
     if threads == 1:
         return [fn(x) for x in items]
     order = list(range(len(items))) if cost is None else sorted(range(len(items)), key=lambda j: -cost[j])
