@@ -7,7 +7,9 @@ the outputs and the metrics are the shared code of :mod:`localiser.pipeline` / :
 Set up as hloc users run point features.  Per frame, for the place the localiser chose:
 
 * **features** -- the live image's 2000 strongest upright ORB or SIFT features
-  (:func:`signatures.pointfeatures.extract`).
+  (:func:`signatures.pointfeatures.extract`); inside a :func:`signatures.pointfeatures.feature_cache`
+  block, localisers of one kind replaying the same run (``sift`` and ``sift-all``) extract each frame
+  once.
 * **point map** -- ``reference`` (methods ``orb``, ``sift``): the reference run's keyframe with its
   triangulated 3D points, the paper's baseline; ``all`` (``orb-all``, ``sift-all``): a keyframe from
   every training run at the place, all in the place frame (:func:`mapping.pointmap.build_point_features_all`);
@@ -43,7 +45,7 @@ import numpy as np
 
 from mapping.pointmap import POINT_MAPS, keypoint_sigma, point_features, point_keyframes, point_map_covariances
 from mapping.store import MapStore
-from signatures.pointfeatures import PointFeatures, extract, match
+from signatures.pointfeatures import PointFeatures, active_feature_cache, extract, match
 from surveys.settings import merge_settings
 from surveys.geometry import Camera
 
@@ -299,8 +301,12 @@ class PointLocaliser(WeakLocaliser):
 
     # ------------------------------------------------------------------------------ detector
     def live_features(self, image: np.ndarray) -> PointFeatures:
-        """The live image's features (same extraction as the map keyframe's)."""
-        return extract(image, self.kind, n_features=int(self.config["n_features"]), config=self.config["features"])
+        """The live image's features (same extraction as the map keyframe's); inside a
+        :func:`signatures.pointfeatures.feature_cache` block, taken from its cache when another
+        localiser of the block has extracted them (``orb`` and ``orb-all`` replaying one run)."""
+        cache = active_feature_cache()
+        get = extract if cache is None else cache.extract
+        return get(image, self.kind, n_features=int(self.config["n_features"]), config=self.config["features"])
 
     def prepare(self, image: np.ndarray) -> LiveFrame:
         """Extract the live image's features (needs neither place nor prior: the replay runs it

@@ -546,12 +546,14 @@ def localise(map_root, run_root, out, method: str = "signatures", every: int = 4
              oracle: str | None = None) -> dict:
     """Open the map and the run, replay, write the outputs; returns ``metrics.json``'s content.
 
-    With ``oracle="none"`` the localiser's run is read without ``groundtruth.tum``, ``gps.csv`` and
-    ``truth.tum``; the truth is read for the evaluation after the replay.
+    ``map_root`` is the map folder, or a :class:`MapStore` already open (replays of one map in one
+    process then share its cache of decoded places).  With ``oracle="none"`` the localiser's run is
+    read without ``groundtruth.tum``, ``gps.csv`` and ``truth.tum``; the truth is read for the
+    evaluation after the replay.
     """
     import dataclasses
 
-    store = MapStore.open(map_root)
+    store = map_root if isinstance(map_root, MapStore) else MapStore.open(map_root)
     cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
     oracle = oracle or cfg["oracle"]
     blind = oracle == "none"

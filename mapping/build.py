@@ -417,8 +417,17 @@ def place_negatives(place, ref_frames: dict, reference: SurveyRun, cfg: dict) ->
             for off in cfg["negative_places"] if place.index + off in ref_frames]
 
 
-def _place_task(place, views, negatives, config):
-    """One unit of parallel work (a module-level function so joblib and Dask can ship it)."""
+def _place_task(place, views, negatives, config, pooled: bool = False):
+    """One unit of parallel work (a module-level function so joblib and Dask can ship it).
+
+    ``pooled``: one of several worker processes -- OpenCV runs on one thread, as BLAS does: the
+    places keep every core busy, and two OpenCV threads per worker would only contend (its parallel
+    loops split rows, so the results are the same either way).
+    """
+    if pooled:
+        import cv2
+
+        cv2.setNumThreads(1)
     return place.index, build_place(place, views, negatives, config)
 
 
@@ -542,7 +551,7 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
         from joblib import Parallel, delayed
 
         par = Parallel(n_jobs=jobs, return_as="generator_unordered", backend="loky" if jobs > 1 else "sequential")
-        for idx, (data, st) in par(delayed(_place_task)(p, v, n, cfg) for p, v, n in tasks()):
+        for idx, (data, st) in par(delayed(_place_task)(p, v, n, cfg, jobs > 1) for p, v, n in tasks()):
             store(idx, data, st)
     bar.close()
     if places_subset is not None and any(not writer.has_place(p.index) for p in places):

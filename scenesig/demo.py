@@ -10,7 +10,8 @@
    at 5 Hz, as in the paper), starting from and reset by the run's INS/GPS (the paper's protocol), and
    with scene signatures once more without any INS/GPS (``--oracle none``: global localisation from the
    map, relocalisation when lost) -- the ``signatures-none`` entry;
-4. the **matching experiment** (§4.2) on the live runs;
+4. the **matching experiment** (§4.2) on the live runs (computed in the localisation pool, beside the
+   replays; its figures after them);
 5. the **report** (``DIR/report/index.html``), a table on stdout and ``DIR/summary.json``::
 
        {"runs": [{"run": str, "conditions": [str],
@@ -18,7 +19,10 @@
                               "orb-all": METRICS, "sift-all": METRICS, "signatures-none": METRICS}}],
         "seconds": float, "localise_seconds_by_method": {METHOD: float}}
 
-   where METRICS is the localiser's ``metrics.json``.
+   where METRICS is the localiser's ``metrics.json``; ``localise_seconds_by_method`` sums each
+   method's replay wall time over the live runs (a baseline that takes the live features its sibling
+   already extracted -- ``sift-all`` after ``sift``, ``orb-all`` after ``orb`` -- is charged only what it
+   adds).
 
 Nothing is downloaded.  The cameras run at 10 Hz (and the detector on every 2nd frame: still 5 Hz)
 so that the whole job fits in ten minutes on two cores; ``--camera-hz 20`` renders the paper's 20 Hz
@@ -39,7 +43,7 @@ from pathlib import Path
 
 from surveys.settings import merge_settings
 
-__all__ = ["default_config", "run_demo", "build_demo_report"]
+__all__ = ["default_config", "run_demo", "build_demo_report", "localise_live_runs", "localise_groups"]
 
 default_config = {
     "preset": "demo",
@@ -83,9 +87,9 @@ def _simulate(world: Path, cfg: dict, jobs: int) -> dict:
                     camera_hz=float(cfg["camera_hz"]), jobs=jobs, overwrite=True)
 
 
-def _localise_task(map_root: str, run_root: str, out: str, entry: str, every: int) -> tuple[str, str, dict]:
-    """One localisation (module-level so joblib can ship it to a worker process); ``entry`` is a method
-    name, or ``<method>-none`` for the method without INS/GPS."""
+def _localise_task(map_root, run_root: str, out: str, entry: str, every: int) -> tuple[str, str, dict]:
+    """One localisation; ``entry`` is a method name, or ``<method>-none`` for the method without INS/GPS;
+    ``map_root`` the map folder or an open :class:`mapping.store.MapStore`."""
     from localiser.replay import localise
 
     blind = entry.endswith("-none")
@@ -93,6 +97,126 @@ def _localise_task(map_root: str, run_root: str, out: str, entry: str, every: in
     metrics = localise(map_root, run_root, out, method=method, every=every, progress=False,
                        oracle="none" if blind else "ins")
     return Path(run_root).name, entry, metrics
+
+
+def _one_thread() -> None:
+    """A pool worker's OpenCV on one thread: the pool already keeps every core busy, and OpenCV's own
+    threads (two per worker by default) would only contend with the other worker (results do not
+    depend on it: OpenCV's parallel loops split rows, not sums)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+def _localise_group(map_root: str, world: str, out: str, run: str, entries: list[str], every: int,
+                    pooled: bool) -> list[tuple[str, str, dict]]:
+    """One run's localisations with the given entries, one after the other in one process (a
+    module-level function so joblib can ship it to a worker).
+
+    The entries of a group are the point-feature baselines of one kind (``sift`` and ``sift-all``):
+    they replay the same frames with the same extraction settings, so the second one takes the live
+    features the first extracted (:func:`signatures.pointfeatures.feature_cache`; identical
+    results, half the extraction -- SIFT on a VGA frame costs ~0.13 s of CPU), and the places the
+    first one decoded (one map store, caching every place the run passes).
+    """
+    from mapping.store import MapStore
+    from signatures.pointfeatures import feature_cache
+
+    if pooled:
+        _one_thread()
+    store = MapStore.open(map_root)
+    if len(entries) > 1:             # every place the run passes stays decoded for the next replay
+        store = MapStore.open(map_root, cache_size=len(store))
+    with feature_cache():
+        return [_localise_task(store, str(Path(world) / run), str(Path(out) / run / e), e, every)
+                for e in entries]
+
+
+def _matching_task(map_root: str, world: str, live: list[str], reference: str, pooled: bool):
+    """The matching experiment (§4.2), run in the localisation pool beside the replays."""
+    from mapping.store import MapStore
+    from surveys.run import read_run
+
+    from .experiments import matching_experiment
+
+    if pooled:
+        _one_thread()
+    store = MapStore.open(map_root)
+    return matching_experiment(store, [read_run(Path(world) / n) for n in live],
+                               reference=read_run(Path(world) / reference), progress=False)
+
+
+#: CPU seconds of one live run's replay per entry, each on its own (demo world, the snow run), and of
+#: the matching experiment: only their order matters, to start the longest jobs first so that the
+#: workers finish together.
+_COST = {"sift-all": 37.0, "sift": 30.0, "orb-all": 14.0, "orb": 9.0, "signatures": 8.6, "signatures-none": 7.8}
+_MATCHING_COST = 20.0
+
+
+def localise_groups(todo: list[tuple[str, str]]) -> list[tuple[str, list[str]]]:
+    """``(run, entry)`` pairs -> ``(run, [entry, ...])`` jobs: a run's point-feature entries of one kind
+    (``orb`` / ``orb-all``, ``sift`` / ``sift-all``, with or without INS/GPS) share a job, each other
+    entry is its own; the costliest first (:data:`_COST`)."""
+    from mapping.pointmap import KINDS
+
+    groups: dict = {}
+    for run, entry in todo:
+        kind = entry.removesuffix("-none").split("-")[0]
+        key = (run, kind) if kind in KINDS else (run, entry)
+        groups.setdefault(key, []).append(entry)
+    return sorted(((key[0], entries) for key, entries in groups.items()), key=lambda job: -_cost(job[1]))
+
+
+def _cost(entries) -> float:
+    return sum(_COST.get(e, 8.0) for e in entries)
+
+
+def localise_live_runs(map_root, world, out, live: list[str], reference: str, entries: list[str], every: int,
+                       jobs: int = 2, progress: bool = True):
+    """The demo's localisation stage: every live run with every entry, and the matching experiment.
+
+    ``world/RUN`` are the survey runs, ``out/RUN/ENTRY`` the localisations (one that already has its
+    ``metrics.json`` is read, not redone).  The jobs (:func:`localise_groups`) and the matching
+    experiment run in one pool of ``jobs`` workers, the costliest first, so the workers finish together.
+
+    Returns
+    -------
+    metrics : dict ``(run, entry) -> metrics.json`` content.
+    matching : the :class:`scenesig.experiments.MatchingResult` on the live runs.
+    """
+    from joblib import Parallel, delayed
+    from tqdm import tqdm
+
+    map_root, world, out = str(map_root), str(world), Path(out)
+    todo = []
+    metrics = {}
+    for n in live:
+        for m in entries:
+            done = out / n / m / "metrics.json"
+            if done.is_file():
+                try:
+                    metrics[(n, m)] = json.loads(done.read_text())
+                    continue
+                except ValueError:
+                    pass
+            todo.append((n, m))
+    pooled = jobs > 1
+    jobs_todo = localise_groups(todo)
+    calls = [delayed(_localise_group)(map_root, world, str(out), n, group, every, pooled) for n, group in jobs_todo]
+    at = next((k for k, (_, group) in enumerate(jobs_todo) if _cost(group) < _MATCHING_COST), len(calls))
+    calls.insert(at, delayed(_matching_task)(map_root, world, list(live), reference, pooled))
+    bar = tqdm(total=len(todo), desc="localise", unit="run", disable=not progress)
+    matching = None
+    for res in Parallel(n_jobs=jobs, return_as="generator_unordered")(calls):
+        if not isinstance(res, list):
+            matching = res
+            continue
+        for n, m, met in res:
+            metrics[(n, m)] = met
+            bar.set_postfix_str(f"{n} {m}")
+            bar.update(1)
+    bar.close()
+    return metrics, matching
 
 
 def _fmt(v, digits=2):
@@ -138,14 +262,11 @@ def build_demo_report(out, config: dict | None = None, live_names: list[str] | N
 
 def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     """Run the whole demo into ``out``; returns ``summary.json``'s content."""
-    from joblib import Parallel, delayed
-
     from mapping.build import build_map
     from mapping.store import MapStore
     from surveys.io import atomic_write_bytes
     from surveys.run import read_run
 
-    from .experiments import matching_experiment
     from .plots import write_matching
 
     cfg = merge_settings(default_config, config, "demo")
@@ -177,43 +298,15 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
 
     entries = list(cfg["methods"]) + [f"{m}-none" for m in cfg["no_oracle_methods"]]
     _log(f"3/5 localising {len(live_names)} live runs with {', '.join(entries)} (detector every {every} frames; "
-         f"-none: without INS/GPS)")
+         f"-none: without INS/GPS), and the matching experiment (§4.2) alongside")
     t = time.perf_counter()
-    todo = []
-    metrics = {}
-    for n in live_names:
-        for m in entries:
-            folder = out / "localise" / n / m
-            done = folder / "metrics.json"
-            if done.is_file():
-                try:
-                    metrics[(n, m)] = json.loads(done.read_text())
-                    continue
-                except ValueError:
-                    pass
-            todo.append((n, m))
-    # slowest first (SIFT against every training keyframe), so the two workers finish together
-    cost = {"sift-all": 0, "sift": 1, "orb-all": 2, "signatures": 3, "signatures-none": 3, "orb": 4}
-    todo.sort(key=lambda nm: cost.get(nm[1], 3))
-    if todo:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(todo), desc="localise", unit="run")
-        par = Parallel(n_jobs=jobs, return_as="generator_unordered")
-        for n, m, met in par(delayed(_localise_task)(str(out / "map"), str(out / "world" / n),
-                                                      str(out / "localise" / n / m), m, every)
-                             for n, m in todo):
-            metrics[(n, m)] = met
-            bar.set_postfix_str(f"{n} {m}")
-            bar.update(1)
-        bar.close()
+    metrics, match_result = localise_live_runs(out / "map", out / "world", out / "localise", live_names, ref_name,
+                                               entries, every, jobs)
     stages["localise"] = time.perf_counter() - t
 
-    _log("4/5 matching experiment (§4.2)")
+    _log("4/5 matching experiment (§4.2): figures")
     t = time.perf_counter()
-    store = MapStore.open(out / "map")
-    res = matching_experiment(store, [runs[n] for n in live_names], reference=runs[ref_name])
-    write_matching(res, store, out / "matching")
+    write_matching(match_result, MapStore.open(out / "map"), out / "matching")
     stages["matching"] = time.perf_counter() - t
 
     _log("5/5 report")
@@ -223,7 +316,8 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
 
     rows = [{"run": n, "conditions": list(runs[n].conditions),
              "methods": {m: metrics[(n, m)] for m in entries}} for n in live_names]
-    # what each method costs inside the demo (its replays' wall time, summed over the live runs)
+    # what each method costs inside the demo (its replays' wall time, summed over the live runs; the
+    # second baseline of a kind does not extract the live features again)
     per_method = {m: float(sum(metrics[(n, m)].get("wall_seconds") or 0.0 for n in live_names))
                   for m in entries}
     summary = {"runs": rows, "seconds": time.perf_counter() - t0, "localise_seconds_by_method": per_method,

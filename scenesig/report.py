@@ -287,26 +287,32 @@ def _lifelong_section(results, fig_dir: Path, out: Path) -> list[str]:
         except (OSError, json.JSONDecodeError) as exc:
             raise DataError(path, f"unreadable: {exc}") from None
         u = res.get("update", {})
-        parts += [f"<h2>Lifelong map ({html.escape(res['condition'])})</h2>",
-                  f"<p class='note'>Condition never trained: <b>{html.escape(res['condition'])}</b>. Run A "
+        parts += [f"<h2>Lifelong map ({html.escape(res['condition'])}, {html.escape(res.get('base', 'demo'))} map)</h2>",
+                  f"<p class='note'>Condition never trained: <b>{html.escape(res['condition'])}</b>; base map: "
+                  f"{html.escape(res.get('base', 'demo'))} (trained on "
+                  f"{html.escape(', '.join(res.get('base_conditions') or ['the demo runs']))}). Run A "
                   f"({html.escape(res['run_a'])}) was localised and its weak places added to a copy of the map "
                   f"(places {html.escape(str(u.get('updated')))}, generation {u.get('generation')}, "
                   f"{u.get('signatures_added', 0)} signatures, {u.get('bytes_added', 0)} bytes added); run B "
                   f"({html.escape(res['run_b'])}) and another live run localised before and after.</p>"]
         head = ("<tr><th class='l'>run</th><th class='l'>map</th><th>inliers / detection</th><th>detections / frame"
-                "</th><th>lateral median vs map (m)</th><th>localised</th><th>failures</th></tr>")
+                "</th><th>lateral median vs map (m)</th><th>lateral p95 vs map (m)</th><th>localised</th>"
+                "<th>failures</th></tr>")
         body = "".join(
             f"<tr><td class='l'>{html.escape(r['label'])} {html.escape(r['run'])}</td><td class='l'>{html.escape(r['map'])}</td>"
             f"<td>{_fmt(r['inliers_per_detection_mean'])}</td><td>{_fmt(r['detections_per_frame_mean'])}</td>"
-            f"<td>{_fmt(r['lateral_median_map_m'])}</td><td>{_fmt(r['localised_fraction'], pct=True)}</td>"
+            f"<td>{_fmt(r['lateral_median_map_m'])}</td><td>{_fmt(r.get('lateral_p95_map_m'))}</td>"
+            f"<td>{_fmt(r['localised_fraction'], pct=True)}</td>"
             f"<td>{_fmt(r['failures'])}</td></tr>" for r in res["rows"])
         parts.append(f"<table class='lifelong'>{head}{body}</table>")
         png = path.parent / "lifelong.png"
         if png.is_file():
-            shutil.copy2(png, fig_dir / "lifelong.png")
-            parts.append(_figure(_rel(fig_dir / "lifelong.png", out),
-                                 "Inliers per detection, lateral median relative to the map and failures, before "
-                                 "(grey) and after (green) the update.", "lifelong"))
+            # one figure per stage (DIR/lifelong/BASE-CONDITION/result): named after its stage folder
+            target = fig_dir / f"lifelong_{path.parent.parent.name}.png"
+            shutil.copy2(png, target)
+            parts.append(_figure(_rel(target, out),
+                                 "Inliers per detection, lateral median and 95th percentile relative to the map "
+                                 "and failures, before (grey) and after (green) the update.", "lifelong"))
     return parts
 
 

@@ -6,7 +6,9 @@ both use these pieces, so each stage is its own function:
 1. :func:`extract` -- detect, keep the ``n_features`` strongest keypoints by detector response,
    optionally make them *upright* (orientation forced to 0 before the descriptor is computed, as
    the GRIEF protocol does: a ground robot's camera does not roll, so rotation invariance only
-   costs distinctiveness).
+   costs distinctiveness).  :class:`FeatureCache` keeps extractions by image content, so jobs that
+   see the same images with the same settings (the ``sift`` and ``sift-all`` baselines replaying one
+   run) extract each image once; :func:`feature_cache` opens such a cache for a block of code.
 2. :func:`match` -- brute-force 2-NN matching with one of four filters: Lowe's ratio test,
    the DAPC adaptive-distance test (Zhang et al., "Multi-Modal Scene Matching Location Algorithm
    Based on M2Det", CMC 2023, eq. 6-7: keep a match when ``d1 < d2 - mean(d2 - d1)``), grid-based
@@ -21,6 +23,10 @@ both use these pieces, so each stage is its own function:
 """
 from __future__ import annotations
 
+import hashlib
+import json
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import cv2
@@ -30,7 +36,8 @@ from surveys.settings import merge_settings
 
 __all__ = ["default_config", "PointFeatures", "Matches", "Vote", "extract", "match", "gms_filter",
            "gms_default_config",
-           "vote_displacement", "estimate_displacement", "FEATURE_KINDS", "MATCH_FILTERS"]
+           "vote_displacement", "estimate_displacement", "FEATURE_KINDS", "MATCH_FILTERS", "FeatureCache",
+           "feature_cache", "active_feature_cache"]
 
 FEATURE_KINDS = ("orb", "sift", "rootsift")
 MATCH_FILTERS = ("ratio", "dapc", "gms", "none")
@@ -248,6 +255,106 @@ def extract(image: np.ndarray, kind: str = "orb", n_features: int | None = None,
         octave=np.array([k.octave for k in kps], np.int64),
         descriptors=np.ascontiguousarray(desc),
         image_shape=gray.shape[:2])
+
+
+class FeatureCache:
+    """Extractions (:func:`extract`) kept by image content and settings, for jobs that see the same images.
+
+    The key is a digest of the image's bytes, shape and dtype and the extraction arguments, so a hit
+    is exactly what :func:`extract` would return for that image (it is deterministic).  Descriptors
+    are stored as uint8 where that is lossless (ORB always; OpenCV's SIFT descriptors are integers
+    in 0..255) and handed back in their original dtype; the other arrays are shared read-only.
+    Thread-safe: two threads missing the same image both extract it, and one result is kept.
+
+    Parameters
+    ----------
+    max_items : keep at most this many extractions (least recently used dropped); None: no bound
+        (a SIFT extraction of a VGA frame takes about 0.25 MB).
+    """
+
+    def __init__(self, max_items: int | None = None):
+        from collections import OrderedDict
+
+        self.max_items = None if max_items is None else int(max_items)
+        self._items: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
+        self.hits = 0
+        self.misses = 0
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    @staticmethod
+    def key(image: np.ndarray, kind: str, n_features, upright, config) -> tuple:
+        img = np.ascontiguousarray(image)
+        digest = hashlib.blake2b(img.data, digest_size=20)
+        digest.update(repr((img.shape, img.dtype.str)).encode())
+        settings = json.dumps([kind, n_features, upright, config], sort_keys=True, default=repr)
+        return digest.digest(), settings
+
+    def extract(self, image: np.ndarray, kind: str = "orb", n_features: int | None = None,
+                upright: bool | None = None, config: dict | None = None) -> PointFeatures:
+        """:func:`extract`, or its earlier result for the same image and arguments."""
+        key = self.key(image, kind, n_features, upright, config)
+        with self._lock:
+            packed = self._items.get(key)
+            if packed is not None:
+                self._items.move_to_end(key)
+                self.hits += 1
+        if packed is not None:
+            return _unpack(packed)
+        feats = extract(image, kind, n_features=n_features, upright=upright, config=config)
+        packed = _pack(feats)
+        with self._lock:
+            self.misses += 1
+            self._items[key] = packed
+            while self.max_items is not None and len(self._items) > self.max_items:
+                self._items.popitem(last=False)
+        return _unpack(packed)
+
+
+def _pack(f: PointFeatures) -> tuple:
+    """Read-only copies of the arrays; descriptors as uint8 when that loses nothing."""
+    arrays = [np.array(a) for a in (f.xy, f.response, f.size, f.angle, f.octave)]
+    desc = np.array(f.descriptors)
+    dtype = desc.dtype
+    if not desc.size or (np.array_equal(desc, np.round(desc)) and desc.min() >= 0 and desc.max() <= 255):
+        desc = desc.astype(np.uint8)
+    for a in (*arrays, desc):
+        a.setflags(write=False)
+    return f.kind, arrays, desc, dtype, tuple(f.image_shape)
+
+
+def _unpack(packed: tuple) -> PointFeatures:
+    kind, (xy, response, size, angle, octave), desc, dtype, shape = packed
+    desc = desc if desc.dtype == dtype else np.ascontiguousarray(desc, dtype=dtype)
+    return PointFeatures(kind, xy, response, size, angle, octave, desc, shape)
+
+
+_ACTIVE_CACHE: FeatureCache | None = None
+
+
+@contextmanager
+def feature_cache(cache: FeatureCache | None = None):
+    """Within the block, :func:`active_feature_cache` is ``cache`` (a new :class:`FeatureCache` by
+    default) in every thread of this process; yields it.
+
+    Code that extracts features of images other code in the block may extract again (the
+    point-feature localisers' live features) asks :func:`active_feature_cache` first.  Blocks nest;
+    the outer cache is active again after the inner block.
+    """
+    global _ACTIVE_CACHE
+    cache = FeatureCache() if cache is None else cache
+    outer, _ACTIVE_CACHE = _ACTIVE_CACHE, cache
+    try:
+        yield cache
+    finally:
+        _ACTIVE_CACHE = outer
+
+
+def active_feature_cache() -> FeatureCache | None:
+    """The cache of the innermost :func:`feature_cache` block, or None outside one."""
+    return _ACTIVE_CACHE
 
 
 def _dedupe(kps) -> list:

@@ -75,11 +75,45 @@ def test_rerun_reuses_outputs(demo_out, capsys):
 def test_lifelong_stage(demo_out):
     """``--lifelong`` after the demo: two unseen-condition runs, the update, before/after rows, the report section."""
     assert main(["demo", "--preset", "tiny", "--out", str(demo_out), "--lifelong"]) == 0
-    res = json.loads((demo_out / "lifelong" / "autumn" / "result" / "lifelong.json").read_text())
-    assert res["condition"] not in default_config["training"]
+    res = json.loads((demo_out / "lifelong" / "day-night" / "result" / "lifelong.json").read_text())
+    assert res["base"] == "day" and res["base_conditions"] == ["sunny", "overcast"]
+    assert res["condition"] not in res["base_conditions"]
     assert [(r["label"][0], r["map"]) for r in res["rows"]] == [("A", "before"), ("B", "before"), ("B", "after"),
                                                                  ("o", "before"), ("o", "after")]
     assert all(r["inliers_per_detection_mean"] is not None for r in res["rows"])
-    assert (demo_out / "lifelong" / "autumn" / "map" / "manifest.json").is_file()
+    assert (demo_out / "lifelong" / "day-night" / "map" / "manifest.json").is_file()
     html = (demo_out / "report" / "index.html").read_text()
-    assert "Lifelong map" in html and "lifelong.png" in html
+    assert "Lifelong map" in html and "lifelong_day-night.png" in html
+
+
+def test_localise_jobs_share_point_features_by_run_and_kind():
+    """A run's ORB entries share one job, its SIFT entries another (one extraction per frame); every other
+    entry is its own job; the costliest jobs come first."""
+    from scenesig.demo import localise_groups
+
+    entries = ["signatures", "orb", "sift", "orb-all", "sift-all", "signatures-none"]
+    jobs = localise_groups([(r, e) for r in ("a", "b") for e in entries])
+    assert sorted(map(tuple, (g for _, g in jobs))) == sorted(
+        [("orb", "orb-all"), ("sift", "sift-all"), ("signatures",), ("signatures-none",)] * 2)
+    assert [g for _, g in jobs[:2]] == [["sift", "sift-all"]] * 2 and {r for r, _ in jobs[:2]} == {"a", "b"}
+    assert sorted(e for _, g in jobs for e in g) == sorted(entries * 2)
+    # a resumed demo: only what is missing
+    assert localise_groups([("a", "sift-all"), ("b", "orb")]) == [("a", ["sift-all"]), ("b", ["orb"])]
+
+
+def test_demo_localise_benchmark_refuses_to_write_into_the_demo(tmp_path):
+    from benchmarks.demo_localise import benchmark
+
+    with pytest.raises(ValueError, match="inside the demo folder"):
+        benchmark(tmp_path, tmp_path / "again")
+
+
+@pytest.mark.heavy
+def test_demo_localise_benchmark_repeats_the_demo(demo_out, tmp_path):
+    """``bench demo_localise --compare`` on the demo: the same localisations, CPU and wall reported."""
+    from benchmarks.demo_localise import main
+
+    assert main([str(demo_out), "--out", str(tmp_path / "loc"), "--compare", "--json", str(tmp_path / "b.json")]) == 0
+    res = json.loads((tmp_path / "b.json").read_text())
+    assert res["identical_to_demo"] is True and res["different"] == []
+    assert res["cpu_seconds"] > 0 and res["wall_seconds"] > 0 and res["matching_places"] > 0

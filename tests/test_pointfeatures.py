@@ -147,3 +147,42 @@ def test_match_filters_keep_planted_matches_and_drop_random_ones(filter):
     correct = truth[m.query] & (m.train == m.query)
     assert correct.sum() > 0.9 * truth.sum()
     assert (~correct).sum() < 0.05 * len(m), (~correct).sum()
+
+
+@pytest.mark.parametrize("kind", ["orb", "sift"])
+def test_feature_cache_returns_exactly_what_extract_does(kind):
+    """A cache hit is the extraction itself (SIFT's descriptors stored as uint8, handed back float32)."""
+    img, other = texture(seed=5), texture(seed=6)
+    cache = pf.FeatureCache()
+    first = cache.extract(img, kind, n_features=300)
+    again = cache.extract(img.copy(), kind, n_features=300)           # same bytes, another array
+    direct = pf.extract(img, kind, n_features=300)
+    assert (cache.misses, cache.hits) == (1, 1)
+    for f in (first, again):
+        for name in ("xy", "response", "size", "angle", "octave", "descriptors"):
+            a, b = getattr(f, name), getattr(direct, name)
+            assert a.dtype == b.dtype and np.array_equal(a, b), name
+        assert f.kind == direct.kind and f.image_shape == direct.image_shape
+    with pytest.raises(ValueError):
+        again.xy[0, 0] = -1.0                                         # shared arrays are read-only
+    # another image, other settings: misses
+    cache.extract(other, kind, n_features=300)
+    cache.extract(img, kind, n_features=200)
+    cache.extract(img, kind, n_features=300, config={"sift": {"contrastThreshold": 0.01}})
+    assert (cache.misses, cache.hits, len(cache)) == (4, 1, 4)
+
+
+def test_feature_cache_bound_and_scope():
+    img = texture(seed=7)
+    cache = pf.FeatureCache(max_items=1)
+    cache.extract(img, "orb", 100)
+    cache.extract(texture(seed=8), "orb", 100)
+    cache.extract(img, "orb", 100)
+    assert len(cache) == 1 and cache.hits == 0 and cache.misses == 3
+    assert pf.active_feature_cache() is None
+    with pf.feature_cache() as outer:
+        assert pf.active_feature_cache() is outer
+        with pf.feature_cache(cache) as inner:
+            assert inner is cache and pf.active_feature_cache() is cache
+        assert pf.active_feature_cache() is outer
+    assert pf.active_feature_cache() is None

@@ -33,6 +33,24 @@ def test_prepared_frame_gives_the_same_observation_and_counts_its_time(point_sto
         method.prepare(live[:100])
 
 
+def test_shared_live_features_give_the_same_observation(point_store, world):  # noqa: F811
+    """Inside a feature-cache block, a second ORB localiser (as ``orb-all`` after ``orb``) takes the live
+    features the first extracted: the same detections."""
+    from signatures.pointfeatures import feature_cache
+
+    store, T_wp0 = point_store
+    live, _ = render(camera_pose(vehicle_pose(3.0, 0.8, np.radians(2.0))), world)
+    configs = (None, {"match": "dapc"})
+    alone = [make_method("orb", store, CAMERA, T_VC, c).detect(live, 0, None) for c in configs]
+    with feature_cache() as cache:
+        shared = [make_method("orb", store, CAMERA, T_VC, c).detect(live, 0, None) for c in configs]
+    assert (cache.misses, cache.hits) == (1, 1)
+    for a, b in zip(alone, shared):
+        assert len(a) >= 30
+        for f in ("uv", "R", "xyz", "map_index"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+
+
 def test_command_line_method_options():
     from localiser.replay import method_options
 

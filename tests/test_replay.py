@@ -275,6 +275,22 @@ def test_tiny_world_point_features_localise_the_like_for_like_run(tiny_fast, tmp
     assert cfg["n_features"] == 2000 and cfg["min_inliers"] >= 12
 
 
+def test_demo_job_shares_features_and_places_with_the_same_outputs(tiny_fast, tmp_path):
+    """The demo's job for ``orb`` and ``orb-all`` of one run (one live-feature extraction per frame, one
+    map store for both replays) writes exactly what two separate localisations write."""
+    from scenesig.demo import _localise_group
+
+    map_root, live = tiny_fast
+    res = _localise_group(str(map_root), str(live.root.parent), str(tmp_path / "job"), live.name,
+                          ["orb", "orb-all"], 1, False)
+    assert [(r, e) for r, e, _ in res] == [(live.name, "orb"), (live.name, "orb-all")]
+    # the second replay (the first one's features and decoded places) equals a replay on its own
+    alone = localise(map_root, live.root, tmp_path / "alone", method="orb-all", every=1, progress=False,
+                     figure=False)
+    _same_outputs(tmp_path / "alone", tmp_path / "job" / live.name / "orb-all")
+    assert res[1][2]["localised_fraction"] == alone["localised_fraction"] > 0.5
+
+
 def test_tiny_world_kidnapped_start_without_ins(tiny_fast, tmp_path):
     """A run starting mid-route (another ``simulate`` call, same seed), its INS and GPS files removed:
     localised from the map alone, correctly, with no oracle read."""

@@ -213,3 +213,72 @@ def test_update_on_a_full_disk_keeps_the_old_map_and_reruns_to_the_same_bytes(wo
     assert not [p for p in work.rglob("*") if ".tmp" in p.name]
     assert main(["map", "update", str(work), str(loc)]) == 0
     assert _contents(work) == _contents(out)
+
+
+def test_live_pose_covariance_grows_with_blind_distance_and_lever_arm():
+    """New landmarks carry the live pose's uncertainty: more with odometry from the fix, more far away."""
+    from mapping.update import _live_pose_covariance, default_config
+
+    T = np.eye(4)
+    T[:2, 3] = [1.0, 2.0]
+    pts = np.array([[6.0, 2.0, 1.0], [21.0, 2.0, 1.0]])   # 5 m and 20 m ahead of the vehicle
+    near = _live_pose_covariance(pts, T, 0.0, default_config)
+    far = _live_pose_covariance(pts, T, 10.0, default_config)
+    s = default_config["live_pose_sigma_m"]
+    assert np.allclose(near[0, 0, 0], s * s)                 # straight ahead: yaw moves it sideways only
+    assert near[1, 1, 1] > near[0, 1, 1] > s * s              # the yaw term grows with the lever arm
+    assert np.all(far[:, 0, 0] > near[:, 0, 0])
+    assert np.all(np.linalg.eigvalsh(near) > 0)
+
+
+def test_align_to_reference_recovers_a_planar_pose_error():
+    """The live pose is corrected from where the new classifiers fire in the reference frames (whose
+    pose in the place frame is exact); with too few firings it is left as it was."""
+    from mapping.places import TrainingView
+    from mapping.update import _planar, align_to_reference
+    from surveys.geometry import Camera, invert
+
+    camera = Camera(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480)
+    T_vc = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1.0]])   # x forward, camera z
+    rng = np.random.default_rng(3)
+    pts_place = np.stack([rng.uniform(8, 25, 30), rng.uniform(-6, 6, 30), rng.uniform(0.2, 4, 30)], axis=1)
+    T_pv_true = np.eye(4)
+    T_pv_true[:2, 3] = [1.0, 0.3]
+    landmarks_vehicle = (pts_place - T_pv_true[:3, 3]) @ T_pv_true[:3, :3]         # in the live vehicle frame
+    error = _planar([0.4, -0.35, np.radians(1.5)], T_pv_true[:2, 3])
+    T_pv_est = error @ T_pv_true
+    window = np.arange(5)
+    T_frame_window = np.stack([np.eye(4)] * 5)
+    T_frame_window[:, 0, 3] = [-4.0, -2.0, 0.0, 2.0, 4.0]
+
+    class _Run:
+        def __init__(self):
+            self.camera, self.T_vehicle_camera = camera, T_vc
+
+        def image(self, frame, gray=True):
+            return int(frame)
+
+    class _Det:
+        pass
+
+    class _Bank:
+        """Fires exactly at the true landmarks' pixels (within the search windows)."""
+
+        def detect(self, frame, windows=None, top_n=1):
+            T_cam_place = invert(T_frame_window[frame] @ T_vc)
+            uv, _ = camera.project(pts_place[:len(windows)] @ T_cam_place[:3, :3].T + T_cam_place[:3, 3])
+            inside = (uv[:, 0] >= windows[:, 0]) & (uv[:, 0] <= windows[:, 2]) & \
+                     (uv[:, 1] >= windows[:, 1]) & (uv[:, 1] <= windows[:, 3])
+            d = _Det()
+            d.x = np.where(inside, uv[:, 0], np.nan)[:, None]
+            d.y = np.where(inside, uv[:, 1], np.nan)[:, None]
+            d.prob = np.where(inside, 0.9, np.nan)[:, None]
+            return d
+
+    view = TrainingView(_Run(), 2, window, T_frame_window, 0.0)
+    T, info = align_to_reference(_Bank(), landmarks_vehicle, T_pv_est, view)
+    assert info["used"] and info["inliers"] >= 8
+    assert np.abs(T[:3, 3] - T_pv_true[:3, 3]).max() < 0.02
+    assert abs(np.degrees(np.arctan2(T[1, 0], T[0, 0]))) < 0.05
+    T2, info2 = align_to_reference(_Bank(), landmarks_vehicle[:3], T_pv_est, view)   # too few firings
+    assert not info2["used"] and np.array_equal(T2, T_pv_est)

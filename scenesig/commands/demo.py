@@ -3,6 +3,9 @@ from __future__ import annotations
 
 from ._types import positive_int
 
+# conditions of the simulator a lifelong stage may learn (the base map must not have trained on it)
+_UNSEEN = ("fog", "autumn", "morning", "night", "dusk", "rain", "snow")
+
 
 def register(groups):
     help = "The main job: simulate, build a map, localise, report."
@@ -16,8 +19,12 @@ def register(groups):
     p.add_argument("--lifelong", action="store_true",
                    help="then the lifelong-map stage: an unseen condition's run A updates the map; run B of it "
                         "and another live run are localised before and after (scenesig/lifelong.py)")
-    p.add_argument("--lifelong-condition", choices=["autumn", "morning"], default="autumn",
-                   help="the never-trained condition of the lifelong stage (default autumn)")
+    p.add_argument("--lifelong-map", choices=["day", "demo"], default="day",
+                   help="base map of the lifelong stage: the demo's day training runs only (default) or the "
+                        "demo's map")
+    p.add_argument("--lifelong-condition", choices=list(_UNSEEN), default=None,
+                   help="the condition the base map never trained on (default: night on the day map, autumn "
+                        "on the demo's; the demo's map trained on all but fog, autumn and morning)")
     p.set_defaults(_run=run)
 
 
@@ -33,6 +40,6 @@ def run(args) -> int:
         from scenesig.lifelong import run_lifelong
 
         run_lifelong(args.out, jobs=int(args.jobs), demo_config=config,
-                     config={"condition": getattr(args, "lifelong_condition", None) or "autumn"})
+                     config={"condition": args.lifelong_condition, "base": args.lifelong_map})
         build_demo_report(args.out, config)
     return 0

@@ -49,16 +49,14 @@ default_config = {
     "jpeg_quality": 95,
 }
 
-_WORLDS: dict = {}
-
 
 def _world(preset: str, seed: int) -> World:
-    """One World per (preset, seed) per process (workers build their own, identically)."""
-    key = (preset, int(seed))
-    if key not in _WORLDS:
-        _WORLDS.clear()
-        _WORLDS[key] = World(preset, seed)
-    return _WORLDS[key]
+    """One World per (preset, seed) per process (workers build their own, identically), the one
+    :func:`surveys.sim.views.get_world` keeps: a pool worker that rendered runs then renders the
+    map builder's truth depths (:mod:`surveys.sim.truth`) with the textures it already made."""
+    from .views import get_world
+
+    return get_world(preset, seed)
 
 
 def run_names(conditions: list[str]) -> list[str]:
