@@ -35,6 +35,8 @@ class StageTimer:
         self.cpu_seconds: dict[str, float] = defaultdict(float)
         self.calls: dict[str, int] = defaultdict(int)
         self.thread_names: dict[str, set] = defaultdict(set)
+        # stage -> thread name -> (wall, CPU) seconds: what each thread spent in the stage
+        self.by_thread: dict[str, dict] = defaultdict(lambda: defaultdict(lambda: [0.0, 0.0]))
         self._local = threading.local()
         self._lock = threading.Lock()
 
@@ -61,7 +63,11 @@ class StageTimer:
                     timer.seconds[stage] += dt - inner[0]
                     timer.cpu_seconds[stage] += dc - inner[1]
                     timer.calls[stage] += 1
-                    timer.thread_names[stage].add(threading.current_thread().name)
+                    name = threading.current_thread().name
+                    timer.thread_names[stage].add(name)
+                    own = timer.by_thread[stage][name]
+                    own[0] += dt - inner[0]
+                    own[1] += dc - inner[1]
         return timed
 
     @contextlib.contextmanager

@@ -6,22 +6,31 @@ detector on every ``--every``-th frame; the demo's 10 Hz camera with ``--every 2
 
 * ``image_decode`` -- reading and decoding the detector frames (:meth:`surveys.run.SurveyRun.image`;
   with prefetching, the default, on a worker thread, overlapping the other stages);
-* ``hog`` -- the HOG pyramid regions the bank needs (:func:`signatures.hog.build_pyramid`);
-* ``bank_filters`` -- the filter responses (``signatures.bank._score_all``);
+* ``hog`` -- the HOG pyramid regions the bank needs (:func:`signatures.hog.build_level`, one level);
+* ``bank_filters`` -- the filter responses (``signatures.bank._score_job``, one level and filter width);
 * ``peak_search`` -- best firing per classifier, sub-cell refinement (``signatures.bank._pick``);
 * ``search_windows`` -- the prior's search windows and predicted scales (:mod:`localiser.detector`);
 * ``solve`` -- the eq. 10 pose solve (:func:`localiser.solver.solve`);
 * ``graph_update`` -- odometry, localisations and resets into the pose graph
   (:class:`localiser.posegraph.PoseGraph`); ``graph_query`` -- its estimates and marginals;
 * ``snap`` -- SE(2) snapping; ``place_choice`` -- nearest place and the place ahead;
-* ``bookkeeping`` -- the rest of the loop (wall time of the loop minus the stages run on the
-  main thread).
+* ``bookkeeping`` -- the rest of the loop (wall time of the loop minus what the main thread spent
+  in the stages; with ``--threads 2`` it includes the main thread waiting for a level another
+  thread describes).
+
+The detector describes and scores the pyramid levels on ``--threads`` threads (default 2, as
+``scenesig localise``); ``--threads 1`` gives the serial profile, where the stages add up.
 
 Each stage has ``ms`` (wall, exclusive: a stage called inside another is charged to itself),
 ``cpu_ms`` (CPU time of the thread that ran it), ``calls``, both per detector frame, and
 ``threads``.  ``realtime_factor`` and ``wall_seconds`` are the replay's own (data duration / wall
 time of the loop); ``cpu_seconds`` is the process CPU time of the loop.  On a loaded machine wall
-times include waiting for a core and CPU times do not: compare CPU times there.
+times include waiting for a core and CPU times do not: compare CPU times there.  On Linux,
+``main_thread_queued_seconds`` is the time the replay's thread spent runnable but waiting for a
+core (``/proc/thread-self/schedstat``), and ``realtime_factor_unqueued`` the realtime factor with
+it taken out -- an estimate of the idle-machine figure that also works under load (conservative
+with ``--threads 2``: a worker thread's own waits for a core, which the replay's thread waits
+out, stay in).
 """
 from __future__ import annotations
 
@@ -35,10 +44,11 @@ def _targets():
     from localiser import detector, pipeline, posegraph, se2
     from localiser.pipeline import Localiser
     from mapping.store import MapStore
-    from signatures import bank
+    from signatures import bank, hog
     from surveys.run import SurveyRun
     return [(SurveyRun, "image", "image_decode"),
-            (bank, "build_pyramid", "hog"), (bank, "_score_all", "bank_filters"), (bank, "_pick", "peak_search"),
+            (bank, "build_level", "hog"), (hog, "build_level", "hog"), (bank, "_score_job", "bank_filters"),
+            (bank, "_pick", "peak_search"),
             (detector, "search_windows", "search_windows"),
             (detector.Detector, "_predicted_levels", "search_windows"),
             (pipeline, "solve", "solve"),
@@ -52,9 +62,10 @@ def _targets():
 
 
 def profile_localise(map_root, run_root, method: str = "signatures", every: int = 2,
-                     prefetch: bool = True) -> dict:
+                     prefetch: bool = True, threads: int = 2) -> dict:
     """Replay ``run_root`` against ``map_root`` with stage timers (module docstring)."""
     from benchmarks._stages import StageTimer
+    from benchmarks._timing import queued_seconds
     from localiser.replay import replay
     from mapping.store import MapStore
     from surveys.run import read_run
@@ -62,10 +73,15 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
     store = MapStore.open(map_root)
     run = read_run(run_root)
     timer = StageTimer()
+    q0 = queued_seconds()
     with timer.patch(*_targets()):
         c0, m0 = time.process_time(), time.thread_time()
-        res = replay(store, run, method, every=every, config={"prefetch": bool(prefetch)})
+        config = {"prefetch": bool(prefetch)}
+        if method == "signatures":
+            config["method"] = {"detector": {"threads": int(threads)}}
+        res = replay(store, run, method, every=every, config=config)
         cpu, main_cpu = time.process_time() - c0, time.thread_time() - m0
+    q1 = queued_seconds()
     tm = res.timings
     n_det = int(res.detector_ran.sum())
     stages = timer.as_dict(per=max(n_det, 1))
@@ -73,17 +89,21 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
         d["ms_per_detector_frame"] = d.pop("ms_per")
         d["cpu_ms_per_detector_frame"] = d.pop("cpu_ms_per")
         d["threads"] = sorted(timer.thread_names[k])
-    on_main = [k for k in timer.seconds if timer.thread_names[k] == {"MainThread"}]
-    book = tm["wall_seconds"] - sum(timer.seconds[k] for k in on_main)
-    book_cpu = main_cpu - sum(timer.cpu_seconds[k] for k in on_main)
+    main = [timer.by_thread[k].get("MainThread", (0.0, 0.0)) for k in timer.seconds]
+    book = tm["wall_seconds"] - sum(m[0] for m in main)
+    book_cpu = main_cpu - sum(m[1] for m in main)
     stages["bookkeeping"] = {"ms": round(1e3 * book, 3), "cpu_ms": round(1e3 * book_cpu, 3), "calls": 0,
                              "ms_per_detector_frame": round(1e3 * book / max(n_det, 1), 3),
                              "cpu_ms_per_detector_frame": round(1e3 * book_cpu / max(n_det, 1), 3),
                              "threads": ["MainThread"]}
     return {"map": str(map_root), "run": run.name, "method": res.method, "every": every, "prefetch": bool(prefetch),
+            "threads": int(threads) if method == "signatures" else None,
             "frames": len(res.times), "detector_frames": n_det, "duration_s": round(tm["duration_s"], 3),
             "wall_seconds": round(tm["wall_seconds"], 3), "cpu_seconds": round(cpu, 3),
             "realtime_factor": round(tm["realtime_factor"], 3),
+            "main_thread_queued_seconds": None if q0 is None else round(q1 - q0, 3),
+            "realtime_factor_unqueued": None if q0 is None else
+            round(tm["duration_s"] / max(tm["wall_seconds"] - (q1 - q0), 1e-9), 3),
             "ms_per_detection": tm["ms_per_detection"], "ms_per_solve": tm["ms_per_solve"],
             "localised_fraction": float(res.localised.sum()) / max(n_det, 1), "failures": int(res.failures),
             "stages": stages}
@@ -98,9 +118,11 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="signatures")
     ap.add_argument("--every", type=int, default=2, help="detector on every N-th frame (default 2: 5 Hz at 10 Hz)")
     ap.add_argument("--no-prefetch", action="store_true", help="decode frames inline (serial profile)")
+    ap.add_argument("--threads", type=int, default=2,
+                    help="detector threads (pyramid levels at once; default 2; 1: serial profile)")
     ap.add_argument("--json", help="write the result JSON here")
     args = ap.parse_args(argv)
-    res = profile_localise(args.map, args.run, args.method, args.every, not args.no_prefetch)
+    res = profile_localise(args.map, args.run, args.method, args.every, not args.no_prefetch, args.threads)
     emit_json(res, args.json)
     return 0
 

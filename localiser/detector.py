@@ -26,7 +26,8 @@ the firings into measurements for the eq. 10 solver:
 * **what to compute** -- the HOG pyramid holds exactly the levels searched, and at each level only
   the cells the windows' detections can touch (:meth:`signatures.bank.Bank.pyramid`; about half of
   each level when tracking), bit-identical to the whole level's features there; the small
-  multiplies run on one BLAS thread (``blas_threads``).
+  multiplies run on one BLAS thread (``blas_threads``), and the levels -- each one's features,
+  then its filter responses -- on ``threads`` threads (the same detections for any count).
 * **prefetching** -- a place's bank is decoded (``Bank.from_arrays``) on a background thread as
   soon as the localiser names the next place, so switching places does not stall detection.
 
@@ -72,6 +73,8 @@ default_config = {
     # thread only spins (~30 % more CPU, taken from the other blocks or the other process), and a
     # fixed count gives the same floating-point sums -- the same detections -- on every machine.
     "blas_threads": 1,
+    # Pyramid levels described and scored at once (signatures.bank: the same detections for any count).
+    "threads": 2,
 }
 
 
@@ -319,11 +322,12 @@ class Detector:
         levels = None
         if not wide and self.config["predict_scale"]:
             levels = self._predicted_levels(sub, data.landmarks[sel], T_place_vehicle)
-        # Exactly the levels searched, and at each only the cells the windows can reach (a tracking
-        # detector looks at a fraction of each level; those cells equal the whole level's).
-        image = sub.pyramid(image, int(self.config["scale_search"]), levels=levels, windows=windows)
+        # The bank builds exactly the levels searched, and at each only the cells the windows can
+        # reach (a tracking detector looks at a fraction of each level; those cells equal the whole
+        # level's), describing and scoring the levels on ``threads`` threads.
         d = sub.detect(image, windows=windows, top_n=int(self.config["top_n"]), levels=levels,
-                       config={"scale_search": int(self.config["scale_search"])})
+                       config={"scale_search": int(self.config["scale_search"]),
+                               "threads": int(self.config["threads"])})
         x, y, prob = d.x[:, 0], d.y[:, 0], d.prob[:, 0]
         good = np.isfinite(x) & np.isfinite(y) & (prob >= self.config["min_probability"]) & (d.scale[:, 0] > 0)
         j = np.flatnonzero(good)

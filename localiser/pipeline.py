@@ -69,8 +69,8 @@ default_config = {
 }
 
 
-def _merge(config: dict | None, defaults: dict, what: str) -> dict:
-    return merge_settings(defaults, config, what)
+def _merge(config: dict | None, defaults: dict, what: str, open: tuple = ()) -> dict:
+    return merge_settings(defaults, config, what, open=open)
 
 
 def odometry_covariance(T_increment: np.ndarray, sigma_per_sqrt_m, sigma_floor) -> np.ndarray:
@@ -212,7 +212,9 @@ class SignatureLocaliser(WeakLocaliser):
     name = "signatures"
 
     def __init__(self, store: MapStore, camera: Camera, T_vehicle_camera: np.ndarray, config: dict | None = None):
-        cfg = _merge(config, {"detector": {}, "solver": {}, "prior_gating": True}, "signature method")
+        # The detector and the solver check their own sub-dicts (their default_config).
+        cfg = _merge(config, {"detector": {}, "solver": {}, "prior_gating": True}, "signature method",
+                     open=("detector", "solver"))
         self.prior_gating = bool(cfg["prior_gating"])
         self.store = store
         self.camera = camera
@@ -311,7 +313,7 @@ class Localiser:
     """
 
     def __init__(self, store: MapStore, oracle: Callable[[float], np.ndarray] | None, config: dict | None = None):
-        cfg = _merge(config, default_config, "localiser")
+        cfg = _merge(config, default_config, "localiser", open=("posegraph",))   # PoseGraph checks it
         self.config = cfg
         self.store = store
         if len(store) < 2:

@@ -12,14 +12,19 @@ Classifiers that search the same pyramid level and have the same filter width sh
 multiply: the level's features are unrolled along x only (each row of the unrolled matrix is
 ``fw`` consecutive cells, ``fw * 31`` values), multiplied once by the stacked rows of all the
 group's filters, and each filter's score map is the sum of its ``fh`` row responses along a
-diagonal (a strided view, no copy).  The multiply is the whole cost (BLAS, multi-threaded); the
+diagonal (a strided view, no copy).  The multiply is most of the scoring cost (BLAS); the
 unrolled matrix is ``fw`` times the level size, not ``fw * fh`` times as a full im2col would be.
 Search windows restrict the rows and columns that are unrolled, and (:meth:`Bank.pyramid`) the cells
 of each level whose features are computed at all.
+
+Given an image, :meth:`Bank.detect` describes and scores each level as one task and runs the
+levels on ``threads`` threads (:func:`signatures.hog.thread_map`): a level's HOG and its filter
+responses are computed exactly as one thread would, so the detections do not depend on the count.
 """
 from __future__ import annotations
 
 import contextlib
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,7 +32,8 @@ import numpy as np
 from surveys.settings import merge_settings
 
 from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
-from signatures.hog import level_scale, level_size, window_cell
+from signatures.hog import (REGION_MARGIN_CELLS, assemble_pyramid, build_level, level_plan, level_scale,
+                            level_size, thread_map, to_gray_float, tune_malloc, window_cell)
 
 __all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce", "limit_blas_threads"]
 
@@ -40,15 +46,25 @@ default_config = {
     # thread mostly spins -- on two busy cores five times the CPU and the wall time of one thread --
     # and a fixed count gives the same sums, the same detections, on every machine.
     "blas_threads": 1,
+    # Pyramid levels described and scored at once (each level's features and filter responses are
+    # one task; the levels are independent, so the detections are the same for any count).  One by
+    # default: mining and map building already run one process per core; the localiser's detector
+    # asks for two (localiser.detector.default_config).
+    "threads": 1,
 }
 
 _BLAS = None
+_BLAS_LIMIT = threading.local()      # the limit this thread's enclosing limit_blas_threads set
 
 
 def limit_blas_threads(n: int | None):
-    """Context limiting numpy's BLAS to ``n`` threads (no-op for None or without threadpoolctl)."""
+    """Context limiting numpy's BLAS to ``n`` threads (no-op for None or without threadpoolctl).
+
+    Inside an enclosing context of the same thread with the same ``n`` it is a no-op too (setting
+    and restoring a limit costs ~0.1 ms; the localiser's detector and the bank both ask for one).
+    """
     global _BLAS
-    if n is None:
+    if n is None or getattr(_BLAS_LIMIT, "n", None) == int(n):
         return contextlib.nullcontext()
     if _BLAS is None:
         try:
@@ -58,7 +74,18 @@ def limit_blas_threads(n: int | None):
             _BLAS = False
     if _BLAS is False:
         return contextlib.nullcontext()
-    return _BLAS.limit(limits=int(n), user_api="blas")
+    return _limited(int(n))
+
+
+@contextlib.contextmanager
+def _limited(n: int):
+    outer = getattr(_BLAS_LIMIT, "n", None)
+    with _BLAS.limit(limits=n, user_api="blas"):
+        _BLAS_LIMIT.n = n
+        try:
+            yield
+        finally:
+            _BLAS_LIMIT.n = outer
 
 
 def _sigmoid(z):
@@ -214,7 +241,10 @@ class Bank:
     def select(self, indices) -> "Bank":
         """A bank with the classifiers at ``indices`` (int array, slice or boolean mask)."""
         idx = np.arange(len(self))[indices]
-        return Bank([self.classifiers[i] for i in np.atleast_1d(idx)], self.image_size, self.meta)
+        sub = Bank.__new__(Bank)      # the classifiers share this bank's HOG parameters: no re-check
+        sub.classifiers = [self.classifiers[i] for i in np.atleast_1d(idx)]
+        sub.image_size, sub.meta, sub.hog = self.image_size, dict(self.meta), dict(self.hog)
+        return sub
 
     def best(self, n: int) -> "Bank":
         """The ``n`` classifiers of highest mining quality (NaN quality last)."""
@@ -314,7 +344,8 @@ class Bank:
             ks.update(range(max(0, c.level - scale_search), c.level + scale_search + 1))
         return sorted(ks)
 
-    def pyramid(self, image: np.ndarray, scale_search: int = 1, levels=None, windows=None) -> HogPyramid:
+    def pyramid(self, image: np.ndarray, scale_search: int = 1, levels=None, windows=None,
+                threads: int = 1) -> HogPyramid:
         """The HOG pyramid of ``image`` with exactly what this bank searches.
 
         Parameters
@@ -325,32 +356,37 @@ class Bank:
         windows : per-classifier search windows (as in :meth:`detect`).  With windows only the
             cells the windows' detections can touch are computed at each level (and levels no
             window reaches are skipped); those cells are exactly the whole level's.
+        threads : levels computed at once (the features are the same for any count).
         """
+        levels, windows = self._check_search(levels, windows, scale_search)
+        h, w = np.asarray(image).shape[:2]
+        table = None if windows is None else self._pairs((w, h), levels, windows)
+        need = sorted(set().union(*levels)) if len(self) else []
+        return build_pyramid(image, self.hog, **_pyramid_extent(table, need, windows), threads=threads)
+
+    def _check_search(self, levels, windows, scale_search: int):
+        """Per-classifier levels (default nominal +- scale_search) and windows as a float array, checked."""
         n = len(self)
         if levels is None:
             levels = [range(max(0, c.level - scale_search), c.level + scale_search + 1) for c in self.classifiers]
         elif len(levels) != n:
             raise ValueError(f"levels must list the levels of each of the {n} classifiers")
-        need = sorted(set().union(*levels)) if n else []
-        if windows is None:
-            return build_pyramid(image, self.hog, levels=need)
-        windows = np.asarray(windows, dtype=float)
-        if windows.shape != (n, 4):
-            raise ValueError(f"windows must have shape ({n}, 4), got {windows.shape}")
-        h, w = np.asarray(image).shape[:2]
+        if windows is not None:
+            windows = np.asarray(windows, dtype=float)
+            if windows.shape != (n, 4):
+                raise ValueError(f"windows must have shape ({n}, 4), got {windows.shape}")
+        return levels, windows
+
+    def _pairs(self, image_size, levels, windows):
+        """:func:`_range_table` for an image of ``image_size`` (width, height), before its pyramid exists."""
+        w, h = image_size
         spo, cell = int(self.hog["scales_per_octave"]), int(self.hog["cell"])
         geom = {}
-        for k in need:
+        for k in sorted(set().union(*levels)) if len(self) else []:
             lw, lh = level_size((w, h), k, spo)
             if lw >= cell and lh >= cell:
                 geom[k] = (lh // cell, lw // cell, lw / w, lh / h)
-        i, k, fh, fw, r0, r1, c0, c1 = _range_table(self.classifiers, levels, geom, cell, windows)
-        boxes: dict[int, list] = {}
-        for kk in np.unique(k):
-            on = k == kk
-            boxes[int(kk)] = [int(r0[on].min()), int((r1[on] + fh[on]).max()),
-                              int(c0[on].min()), int((c1[on] + fw[on]).max())]
-        return build_pyramid(image, self.hog, levels=sorted(boxes), regions={k: tuple(b) for k, b in boxes.items()})
+        return _range_table(self.classifiers, levels, geom, cell, windows)
 
     def detect(self, image, windows=None, top_n: int = 1, config: dict | None = None,
                levels=None) -> Detections:
@@ -376,28 +412,71 @@ class Bank:
         Detections
         """
         cfg = merge_settings(default_config, config, "detection")
-        n = len(self)
-        if isinstance(image, HogPyramid):
-            pyr = image
-            if not pyr.matches(self.hog):
-                raise ValueError("pyramid was built with different HOG parameters than the bank "
-                                 f"({pyr.config} vs {self.hog})")
-        else:
-            pyr = self.pyramid(image, int(cfg["scale_search"]), levels=levels, windows=windows)
         if top_n < 1:
             raise ValueError(f"top_n must be >= 1, got {top_n}")
-        if windows is not None:
-            windows = np.asarray(windows, dtype=float)
-            if windows.shape != (n, 4):
-                raise ValueError(f"windows must have shape ({n}, 4), got {windows.shape}")
-        ss = int(cfg["scale_search"])
-        if levels is None:
-            levels = [range(max(0, c.level - ss), c.level + ss + 1) for c in self.classifiers]
-        elif len(levels) != n:
-            raise ValueError(f"levels must list the levels of each of the {n} classifiers")
+        levels, windows = self._check_search(levels, windows, int(cfg["scale_search"]))
+        threads = int(cfg["threads"])
         with limit_blas_threads(cfg["blas_threads"]):
-            maps = _score_all(self.classifiers, pyr, levels, windows)
+            if isinstance(image, HogPyramid):
+                pyr = image
+                if not pyr.matches(self.hog):
+                    raise ValueError("pyramid was built with different HOG parameters than the bank "
+                                     f"({pyr.config} vs {self.hog})")
+                maps = _score_all(self.classifiers, pyr, levels, windows, threads)
+            else:
+                pyr, maps = self._describe_and_score(image, levels, windows, threads)
         return _pick(self.classifiers, pyr, maps, top_n, bool(cfg["refine"]), float(cfg["nms_iou"]))
+
+    def _describe_and_score(self, image, levels, windows, threads: int):
+        """:meth:`pyramid` and :func:`_score_all` in one: each level's features and then its filter
+        responses are one task, so on several threads one level is scored while another is
+        described.  The same pyramid and score maps as the two steps."""
+        tune_malloc()
+        cfg = merge_settings(hog_default, self.hog, "HOG")
+        img = to_gray_float(image, bool(cfg["color"]))
+        size = img.shape[1::-1]
+        table = self._pairs(size, levels, windows)
+        need = sorted(set().union(*levels)) if len(self) else []
+        plan = level_plan(size, cfg, **_pyramid_extent(table, need, windows))
+        jobs = _jobs(table)
+        at_level = _by_level(jobs)
+
+        def level_task(p):
+            k, lsize, box = p
+            feat, valid = build_level(img, lsize, box, cfg)
+            return (feat, valid), {key: _score_job(feat, key, jobs[key], self.classifiers)
+                                   for key in at_level.get(k, ())}
+
+        done = thread_map(level_task, plan, threads, cost=[_level_cost(p, cfg) for p in plan])
+        scored = {}
+        for _, d in done:
+            scored.update(d)
+        return assemble_pyramid(size, cfg, plan, [f for f, _ in done]), _collect(len(self), jobs, scored)
+
+
+def _pyramid_extent(table, need, windows) -> dict:
+    """``levels`` and ``regions`` of :func:`build_pyramid` for a range table: every needed level whole
+    without windows; with windows only the levels some window reaches, each the bounding box (cells,
+    end exclusive) of its pairs' windows."""
+    if windows is None:
+        return {"levels": need, "regions": None}
+    _, k, fh, fw, r0, r1, c0, c1 = table
+    boxes = {}
+    for kk in np.unique(k):
+        on = k == kk
+        boxes[int(kk)] = (int(r0[on].min()), int((r1[on] + fh[on]).max()),
+                          int(c0[on].min()), int((c1[on] + fw[on]).max()))
+    return {"levels": sorted(boxes), "regions": boxes}
+
+
+def _level_cost(p, cfg) -> float:
+    """Pixels a :func:`signatures.hog.build_level` task of :func:`signatures.hog.level_plan` describes
+    (to start the largest levels first)."""
+    _, (lw, lh), box = p
+    if box is None:
+        return float(lw * lh)
+    cell, m = int(cfg["cell"]), 2 * REGION_MARGIN_CELLS
+    return float(min(lh, (box[1] - box[0] + m) * cell) * min(lw, (box[3] - box[2] + m) * cell))
 
 
 def _compact(a: np.ndarray) -> np.ndarray:
@@ -450,13 +529,13 @@ def _range_table(classifiers, levels, geom: dict, cell: int, windows):
     return tuple(a[keep] for a in (i, k, fh, fw, r0, r1, c0, c1))
 
 
-def _score_all(classifiers, pyr: HogPyramid, levels, windows):
-    """Score maps: list (per classifier) of list of (k, r0, c0, map) with map[r - r0, c - c0]."""
-    n = len(classifiers)
-    out = [[] for _ in range(n)]
-    jobs: dict[tuple[int, int], list] = {}
+def _score_all(classifiers, pyr: HogPyramid, levels, windows, threads: int = 1):
+    """Score maps: list (per classifier) of list of (k, r0, c0, map) with map[r - r0, c - c0].
+
+    The levels are scored on ``threads`` threads; the maps are the same for any count."""
     geom = {k: (*f.shape[:2], *pyr.scale_xy(k)) for k, f in pyr.levels.items()}
-    i, k, fh, fw, r0, r1, c0, c1 = _range_table(classifiers, levels, geom, pyr.cell, windows)
+    table = _range_table(classifiers, levels, geom, pyr.cell, windows)
+    i, k, fh, fw, r0, r1, c0, c1 = table
     for kk, box in pyr.regions.items():
         on = k == kk
         v0, v1, u0, u1 = box
@@ -466,24 +545,62 @@ def _score_all(classifiers, pyr: HogPyramid, levels, windows):
             raise ValueError(f"pyramid level {kk} holds features only in cells {box}, but classifier {i[j]} needs "
                              f"rows {r0[j]}..{r1[j] + fh[j] - 1}, columns {c0[j]}..{c1[j] + fw[j] - 1} "
                              "(build it with Bank.pyramid and the same windows and levels)")
+    jobs = _jobs(table)
+    at_level = _by_level(jobs)
+    done = thread_map(lambda keys: {key: _score_job(pyr.levels[key[0]], key, jobs[key], classifiers) for key in keys},
+                      list(at_level.values()), threads, cost=[pyr.levels[ks[0][0]].size for ks in at_level.values()])
+    scored = {}
+    for d in done:
+        scored.update(d)
+    return _collect(len(classifiers), jobs, scored)
+
+
+def _jobs(table) -> dict:
+    """The range table's pairs grouped by (level, filter width) -- one multiply each (or one per member,
+    see :func:`_score_job`) -- in the order the groups first appear: ``{(k, fw): [(i, r0, r1, c0, c1)]}``."""
+    i, k, fh, fw, r0, r1, c0, c1 = table
+    jobs: dict[tuple[int, int], list] = {}
     for row in zip(i.tolist(), k.tolist(), fw.tolist(), r0.tolist(), r1.tolist(), c0.tolist(), c1.tolist()):
         jobs.setdefault((row[1], row[2]), []).append((row[0], row[3], row[4], row[5], row[6]))
-    for (k, fw), members in jobs.items():
-        feat = pyr.levels[k]
-        # One multiply for the whole group over the union of its windows -- unless the windows
-        # are small and scattered (the localiser's case), when the union would mostly be wasted
-        # work and each member is scored on its own region.
-        area = sum((m[2] - m[1] + 1) * (m[4] - m[3] + 1) for m in members)
-        union = ((max(m[2] for m in members) - min(m[1] for m in members) + 1)
-                 * (max(m[4] for m in members) - min(m[3] for m in members) + 1))
-        batches = [members] if len(members) == 1 or 2 * area >= union else [[m] for m in members]
-        for batch in batches:
-            _score_group(feat, fw, batch, classifiers, k, out)
+    return jobs
+
+
+def _by_level(jobs: dict) -> dict:
+    """``{k: [(k, fw), ...]}``: the groups of :func:`_jobs` per level, in their order."""
+    at_level: dict[int, list] = {}
+    for key in jobs:
+        at_level.setdefault(key[0], []).append(key)
+    return at_level
+
+
+def _collect(n: int, jobs: dict, scored: dict) -> list:
+    """Per classifier, its score maps in the order of the groups (as a serial loop appends them)."""
+    out = [[] for _ in range(n)]
+    for key in jobs:
+        for i, entry in scored[key]:
+            out[i].append(entry)
     return out
 
 
-def _score_group(feat, fw, members, classifiers, k, out):
-    """Score a group of same-width filters on one level with one matrix multiply."""
+def _score_job(feat, key, members, classifiers) -> list:
+    """``[(i, (k, r0, c0, map)), ...]`` of one (level, filter width) group on the level's features."""
+    k, fw = key
+    # One multiply for the whole group over the union of its windows -- unless the windows
+    # are small and scattered (the localiser's case), when the union would mostly be wasted
+    # work and each member is scored on its own region.
+    area = sum((m[2] - m[1] + 1) * (m[4] - m[3] + 1) for m in members)
+    union = ((max(m[2] for m in members) - min(m[1] for m in members) + 1)
+             * (max(m[4] for m in members) - min(m[3] for m in members) + 1))
+    batches = [members] if len(members) == 1 or 2 * area >= union else [[m] for m in members]
+    out = []
+    for batch in batches:
+        out.extend(_score_group(feat, fw, batch, classifiers, k))
+    return out
+
+
+def _score_group(feat, fw, members, classifiers, k) -> list:
+    """Score a group of same-width filters on one level with one matrix multiply:
+    ``[(i, (k, r0, c0, map)), ...]`` in the order of ``members``."""
     # Union of the members' ranges: rows and columns of cells that must be unrolled.
     if len(members) == 1:
         i, R0, R1, C0, C1 = members[0]
@@ -510,9 +627,11 @@ def _score_group(feat, fw, members, classifiers, k, out):
         rows.append(w.reshape(w.shape[0], fw * FEATURE_DIM))
         offs.append(o)
         o += w.shape[0]
-    wmat = np.concatenate(rows, axis=0).T                        # (fw*31, sum fh)
+    # (fw*31, sum fh); one member's filter is used in place (the same layout as the stacked copy)
+    wmat = (rows[0] if len(rows) == 1 else np.concatenate(rows, axis=0)).T
     resp = (x_unrolled @ wmat).reshape(nr, ncol, o)             # row responses
     s0, s1, s2 = resp.strides
+    out = []
     for m, off in zip(members, offs):
         i, r0, r1, c0, c1 = m
         fh = classifiers[i].filter_shape[0]
@@ -520,7 +639,8 @@ def _score_group(feat, fw, members, classifiers, k, out):
         # score[y, x] = sum_d resp[y + d, x, d]: a diagonal of the row responses (strided view).
         start = (r0 - R0) * s0 + (c0 - C0) * s1 + off * s2
         diag = np.ndarray((nrow, c1 - c0 + 1, fh), resp.dtype, resp, start, (s0, s1, s0 + s2))
-        out[i].append((k, r0, c0, diag.sum(axis=2) + np.float32(classifiers[i].bias)))
+        out.append((i, (k, r0, c0, diag.sum(axis=2) + np.float32(classifiers[i].bias))))
+    return out
 
 
 def score_maps_bruteforce(classifier: Classifier, feat: np.ndarray) -> np.ndarray:

@@ -48,6 +48,8 @@ def test_stage_timer_is_exclusive_and_restores(monkeypatch):
     assert timer.calls == {"a": 1, "b": 2}
     # outer is charged its own 1 s, not the 4 s including the inner call it made
     assert timer.seconds == {"a": 1.0, "b": 6.0} and timer.cpu_seconds == {"a": 1.0, "b": 6.0}
+    assert {k: dict(v) for k, v in timer.by_thread.items()} == {"a": {"MainThread": [1.0, 1.0]},
+                                                               "b": {"MainThread": [6.0, 6.0]}}
     d = timer.as_dict(per=2)
     assert d["b"] == {"ms": 6000.0, "cpu_ms": 6000.0, "calls": 2, "ms_per": 3000.0, "cpu_ms_per": 3000.0}
 
@@ -78,3 +80,17 @@ def test_profile_localise_reports_the_stages(tmp_path, capsys):
     assert st["image_decode"]["calls"] == res["detector_frames"]
     assert st["graph_update"]["calls"] > 0 and st["snap"]["calls"] >= res["frames"]
     assert "bookkeeping" in st and res["realtime_factor"] > 0
+    if res["main_thread_queued_seconds"] is not None:                  # Linux
+        assert 0 <= res["main_thread_queued_seconds"] <= res["wall_seconds"]
+        assert res["realtime_factor_unqueued"] >= res["realtime_factor"]
+
+
+def test_median_ms_unqueued_is_at_most_the_wall_time():
+    from benchmarks._timing import median_ms_unqueued, queued_seconds
+
+    wall, unqueued = median_ms_unqueued(lambda: sum(range(20000)), repeat=5)
+    assert wall > 0
+    if queued_seconds() is None:                                       # not Linux
+        assert unqueued is None
+    else:
+        assert 0 <= unqueued <= wall

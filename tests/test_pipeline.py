@@ -205,6 +205,16 @@ def test_method_interface_single_and_two_stage(world):
     m = make_method("signatures", store, run.camera, run.T_vehicle_camera)
     assert m.name == "signatures"
     m.close()
+    # Detector and solver options pass through the method's config and are checked by their owners.
+    m = make_method("signatures", store, run.camera, run.T_vehicle_camera,
+                    {"detector": {"threads": 1}, "solver": {"max_rounds": 2}})
+    assert m.detector.config["threads"] == 1 and m.solver_config["max_rounds"] == 2
+    m.close()
+    with pytest.raises(ValueError, match="unknown detector option"):
+        make_method("signatures", store, run.camera, run.T_vehicle_camera, {"detector": {"thread": 1}})
+    assert Localiser(store, None, {"posegraph": {"extra_iterations": 0}}).graph is not None
+    with pytest.raises(ValueError, match="unknown pose-graph option"):
+        Localiser(store, None, {"posegraph": {"extra_iteration": 0}})
 
 
 # ------------------------------------------------------------------------------ localiser block

@@ -167,6 +167,29 @@ def test_windowed_pyramid_computes_less_and_detects_the_same():
     for f in ("x", "y", "score", "prob", "level"):
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
         np.testing.assert_array_equal(getattr(c, f), getattr(b, f))
+    # Levels described and scored on one thread (the default) or two: the same detections.
+    for pyr_or_img in (img, full):
+        for wins in (win, None):
+            one = bank.detect(pyr_or_img, windows=wins, levels=levels, config={"threads": 1})
+            two = bank.detect(pyr_or_img, windows=wins, levels=levels, config={"threads": 2})
+            for f in ("x", "y", "score", "prob", "level"):
+                np.testing.assert_array_equal(getattr(one, f), getattr(two, f))
     # A partial pyramid refuses windows it was not built for.
     with pytest.raises(ValueError, match="holds features only"):
         bank.detect(part, levels=levels)
+
+
+def test_blas_limit_nests_and_restores():
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    from signatures.bank import limit_blas_threads
+
+    def counts():
+        return [d["num_threads"] for d in threadpoolctl.threadpool_info() if d["user_api"] == "blas"]
+
+    before = counts()
+    with limit_blas_threads(1):
+        assert set(counts()) == {1}
+        with limit_blas_threads(1):          # the same limit again: nothing to set or restore
+            assert set(counts()) == {1}
+        assert set(counts()) == {1}
+    assert counts() == before

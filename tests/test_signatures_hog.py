@@ -125,3 +125,53 @@ def test_pyramid_regions_hold_exactly_the_whole_levels_features():
     # A region covering most of its level is computed whole.
     whole = hog.build_pyramid(img, levels=[2], regions={2: (0, 20, 0, 28)})
     assert 2 not in whole.regions and whole.valid_region(2) == (0,) + whole.levels[2].shape[:1] + (0, whole.levels[2].shape[1])
+
+
+def test_thread_map_keeps_order_raises_and_nests():
+    import cv2
+    cv_threads = set()
+    before = cv2.getNumThreads()
+
+    def square(x):
+        cv_threads.add(cv2.getNumThreads())
+        return x * x
+
+    items = list(range(9))
+    assert hog.thread_map(square, items, threads=2, cost=items) == [x * x for x in items]
+    assert cv_threads == {1} and cv2.getNumThreads() == before      # OpenCV on one thread meanwhile
+    assert hog.thread_map(square, items, threads=1) == [x * x for x in items]
+    assert hog.thread_map(square, [], threads=2) == []
+
+    def boom(x):
+        if x == 3:
+            raise KeyError("three")
+        return x
+
+    with pytest.raises(KeyError, match="three"):
+        hog.thread_map(boom, items, threads=2)
+    # A call from inside a pool worker (its only helper busy) must not wait for itself.
+    assert hog.thread_map(lambda x: sum(hog.thread_map(square, range(x), threads=2)), [3, 4], threads=2) == [5, 14]
+    assert cv2.getNumThreads() == before
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_pyramid_on_threads_equals_the_serial_pyramid(threads):
+    img = _textured()
+    boxes = {0: (10, 14, 20, 26), 3: (8, 17, 15, 20)}
+    for regions in (None, boxes):
+        a = hog.build_pyramid(img, levels=[0, 1, 3, 4, 6], regions=regions)
+        b = hog.build_pyramid(img, levels=[0, 1, 3, 4, 6], regions=regions, threads=threads)
+        assert a.levels.keys() == b.levels.keys() and a.regions == b.regions and a.sizes == b.sizes
+        for k in a.levels:
+            assert np.array_equal(a.levels[k], b.levels[k])
+
+
+def test_thread_map_works_in_a_forked_child():
+    import multiprocessing as mp
+    import os
+
+    if not hasattr(os, "fork"):
+        pytest.skip("no fork on this platform")
+    hog.thread_map(abs, [1, -2, 3], threads=2)            # the parent's pool exists now
+    with mp.get_context("fork").Pool(1) as pool:
+        assert pool.apply(hog.thread_map, (abs, [-1, -2, -3], 2)) == [1, 2, 3]
