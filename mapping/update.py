@@ -15,7 +15,9 @@ and without ground truth:
 3. *re-mining* -- :func:`mapping.build.mine_and_refine` on the live frame first, then the place's
    build-time training images and its earlier experiences, with the build's negatives and seed; the
    survivors go through the temporal check and the depth refinement over the live run's ±10 m window
-   from its odometry (§3.2.1) and are carried into the place frame by ``T_place_vehicle``.  The
+   from its odometry (§3.2.1) and are carried into the place frame by ``T_place_vehicle``, corrected
+   first by aligning them to their firings in the reference run's frames around the place
+   (:func:`align_to_reference`), with that pose's uncertainty added to their covariances.  The
    place's existing classifiers are kept with their landmarks (refined depths) untouched; the new
    ones are appended.  Other places' files are not touched.
 4. *experiences* -- per place (manifest ``extra["experiences"]``): run, conditions, frame, the map
