@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from surveys.errors import DataError
+from surveys.validation import csv_header
 
 __all__ = ["Tile", "TileSet", "load_tiles", "EARTH_RADIUS_M", "MAP_COLUMNS"]
 
@@ -234,13 +235,7 @@ def load_tiles(root, check_images: bool = True) -> TileSet:
     except (OSError, UnicodeDecodeError) as e:
         raise DataError(path, f"cannot read: {e}") from None
     reader = csv.reader(text.splitlines())
-    header = next(reader, None)
-    if header is None:
-        raise DataError(path, "empty file")
-    header = [h.strip() for h in header]
-    missing = [c for c in MAP_COLUMNS if c not in header]
-    if missing:
-        raise DataError(path, f"missing column(s) {', '.join(missing)}; header is {header}", 1)
+    header = csv_header(reader, path, MAP_COLUMNS)
     col = {c: header.index(c) for c in MAP_COLUMNS}
     tiles, seen = [], set()
     for line, row in enumerate(reader, start=2):

@@ -21,6 +21,7 @@ from surveys.errors import DataError
 from surveys.io import atomic_write_text, make_dirs
 from surveys.run import read_run
 from surveys.tum import read_tum, write_tum
+from surveys.validation import csv_header
 
 from .evaluation import ReferencePath, evaluate, summary
 
@@ -247,13 +248,7 @@ def read_frames_csv(path) -> dict:
     try:
         with open(path, newline="", encoding="utf-8") as fh:
             reader = csv.reader(fh)
-            header = next(reader, None)
-            if header is None:
-                raise DataError(path, "empty file")
-            header = [h.strip() for h in header]
-            missing = [c for c in FRAMES_COLUMNS if c not in header]
-            if missing:
-                raise DataError(path, f"missing column(s) {missing}; expected {list(FRAMES_COLUMNS)}", line=1)
+            header = csv_header(reader, path, FRAMES_COLUMNS)
             cols = {h: [] for h in header}
             for ln, row in enumerate(reader, start=2):
                 if not row:

@@ -3,13 +3,29 @@
 Library functions check their array inputs here, so the same mistake gets the same message everywhere:
 the argument's name, the expected shape and what is wrong.  Each check returns the input as a float (or
 image) array, so callers write ``T = check_pose(T, "T_world_place")``.  Bad *files* are reported as
-:class:`surveys.errors.DataError` by the readers; these checks raise ``ValueError`` for bad arguments.
+:class:`surveys.errors.DataError` by the readers (:func:`csv_header` is their shared check of a CSV file's
+header); the array checks raise ``ValueError`` for bad arguments.
 """
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["check_array", "check_pose", "check_poses", "check_covariance", "check_image"]
+__all__ = ["check_array", "check_pose", "check_poses", "check_covariance", "check_image", "csv_header"]
+
+
+def csv_header(reader, path, required) -> list[str]:
+    """The stripped header row of a CSV file being read with ``reader`` (a :func:`csv.reader`); raises
+    :class:`surveys.errors.DataError` naming ``path`` when the file is empty or lacks a ``required`` column."""
+    from surveys.errors import DataError
+
+    header = next(reader, None)
+    if header is None:
+        raise DataError(path, "empty file")
+    header = [h.strip() for h in header]
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise DataError(path, f"missing column(s) {', '.join(missing)}; header is {header}", 1)
+    return header
 
 
 def check_array(a, shape: tuple, name: str) -> np.ndarray:
