@@ -35,6 +35,8 @@ import numpy as np
 
 from mapping.store import MapStore
 from surveys.settings import merge_settings
+from signatures import _hog_kernel
+from signatures.hog import ScaledImages
 from surveys.geometry import Camera, invert
 
 from .detector import Detector, Observation
@@ -222,11 +224,14 @@ class SignatureLocaliser(WeakLocaliser):
         self.solver_config = _merge(cfg["solver"], solver_default, "solver")
         self.detector = Detector(store, camera, T_vehicle_camera, cfg["detector"])
         self.color = False
+        self._hog = None
+        _hog_kernel.warm_up()          # before the replay's clock starts, like opening the map
         # The banks' HOG parameters decide gray or colour input (all places share them).
         for idx in store.places:
             lp = self.detector.place(idx)
             if len(lp.bank):
-                self.color = bool(lp.bank.hog.get("color", False))
+                self._hog = dict(lp.bank.hog)
+                self.color = bool(self._hog.get("color", False))
                 break
 
     def prefetch(self, place):
@@ -238,6 +243,14 @@ class SignatureLocaliser(WeakLocaliser):
                 "prior_gating": self.prior_gating, "detector": dict(self.detector.config),
                 "estimator": "robust Levenberg-Marquardt with the motion prior (eq. 10), Huber",
                 "solver": dict(self.solver_config)}
+
+    def prepare(self, image):
+        """The image with its HOG pyramid levels' resizes (:class:`signatures.hog.ScaledImages`): they
+        need neither the place nor the prior, so a replay makes them for the next frame on another
+        core; detection then only crops them, with the same features."""
+        if self._hog is None:
+            return image
+        return ScaledImages.for_pyramid(image, self._hog)
 
     def detect(self, image, place, prior: MotionPrior) -> Observation:
         return self.detector.detect(image, place, prior.T_place_vehicle, prior.covariance,

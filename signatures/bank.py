@@ -33,7 +33,7 @@ from surveys.settings import merge_settings
 
 from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
 from signatures.hog import (REGION_MARGIN_CELLS, assemble_pyramid, build_level, level_plan, level_scale,
-                            level_size, thread_map, to_gray_float, tune_malloc, window_cell)
+                            level_size, thread_map, as_hog_input, tune_malloc, window_cell)
 
 __all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce", "limit_blas_threads"]
 
@@ -394,9 +394,10 @@ class Bank:
 
         Parameters
         ----------
-        image : ndarray or HogPyramid
-            The image (gray or BGR) or its pyramid (built with this bank's HOG parameters and the
-            needed levels, e.g. by :meth:`pyramid`).
+        image : ndarray, ScaledImages or HogPyramid
+            The image (gray or BGR), the image with its levels' resizes
+            (:class:`signatures.hog.ScaledImages`, the same detections), or its pyramid (built with
+            this bank's HOG parameters and the needed levels, e.g. by :meth:`pyramid`).
         windows : ndarray, shape (n, 4), optional
             Per-classifier search window ``x_min, y_min, x_max, y_max`` (input pixels) for the
             detection *centre*; a row of NaN means the whole image.
@@ -433,7 +434,7 @@ class Bank:
         described.  The same pyramid and score maps as the two steps."""
         tune_malloc()
         cfg = merge_settings(hog_default, self.hog, "HOG")
-        img = to_gray_float(image, bool(cfg["color"]))
+        img = as_hog_input(image, bool(cfg["color"]))
         size = img.shape[1::-1]
         table = self._pairs(size, levels, windows)
         need = sorted(set().union(*levels)) if len(self) else []

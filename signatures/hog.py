@@ -38,11 +38,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from signatures import _hog_kernel
 from surveys.settings import merge_settings
 
 __all__ = ["default_config", "FEATURE_DIM", "fhog", "HogPyramid", "build_pyramid", "level_scale",
            "level_size", "window_cell", "resize_area_region", "to_gray_float", "REGION_MARGIN_CELLS",
-           "level_plan", "build_level", "assemble_pyramid", "thread_map"]
+           "level_plan", "build_level", "assemble_pyramid", "thread_map", "ScaledImages"]
 
 #: HOG parameters.  Every classifier stores the values it was trained with; detection refuses a
 #: pyramid built with different ones.
@@ -58,9 +59,13 @@ default_config = {
 FEATURE_DIM = 31
 
 _N_BINS = 18
+# SCENESIG_NUMPY_HOG=1: the numpy orientation binning even where numba is installed (the same features).
+_NUMPY_ONLY = bool(os.environ.get("SCENESIG_NUMPY_HOG"))
 # cv2.resize INTER_AREA is the right anti-aliasing filter for downscaling by non-integer factors.
 _INTERP = cv2.INTER_AREA
 _EPS = 1e-4
+# A level region covering more than this share of the level is described whole (one resize is cheaper).
+_FULL_FRACTION = 0.8
 
 
 _MALLOC_TUNED = False
@@ -134,6 +139,60 @@ def to_gray_float(image: np.ndarray, color: bool = False) -> np.ndarray:
     return cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_BGR2GRAY).astype(np.float32)
 
 
+class ScaledImages:
+    """An image ready for HOG (:func:`to_gray_float`) and its pyramid levels' resizes.
+
+    The resizes depend on the image alone -- not on which levels or cells a detector will search --
+    so a replay computes them for the next frame on a worker thread while the current frame is
+    solved (:meth:`localiser.pipeline.SignatureLocaliser.prepare`).  :func:`build_level` then crops
+    a level's region out of its resize instead of resizing the region: the same values bit for bit
+    (:func:`resize_area_region` equals the crop of OpenCV's resize for integer-valued images, which
+    :func:`to_gray_float` of a uint8 image always is), so the features do not change.
+
+    Parameters
+    ----------
+    image : gray or BGR image (uint8 expected).
+    color : as :data:`default_config`'s ``color``.
+    sizes : (width, height) of the levels to resize now (others are never made here: a region of
+        them is resized on its own, which is cheaper when only part of the level is needed).
+    """
+
+    def __init__(self, image: np.ndarray, color: bool = False, sizes=()):
+        self.image = to_gray_float(image, color)
+        self.color = bool(color)
+        own = self.image.shape[1::-1]
+        self._levels = {tuple(map(int, s)): cv2.resize(self.image, tuple(map(int, s)), interpolation=_INTERP)
+                        for s in sizes if tuple(map(int, s)) != own}
+
+    @property
+    def shape(self) -> tuple:
+        return self.image.shape
+
+    def resized(self, size) -> np.ndarray | None:
+        """The whole level of ``size`` (width, height) if it was made (or is the image), else None."""
+        size = (int(size[0]), int(size[1]))
+        if size == self.image.shape[1::-1]:
+            return self.image
+        return self._levels.get(size)
+
+    @classmethod
+    def for_pyramid(cls, image: np.ndarray, config: dict | None = None, levels=None) -> "ScaledImages":
+        """``image`` with the resizes of pyramid ``levels`` (default those of :func:`build_pyramid`)."""
+        cfg = merge_settings(default_config, config, "HOG")
+        h, w = np.asarray(image).shape[:2]
+        plan = level_plan((w, h), cfg, levels)
+        return cls(image, bool(cfg["color"]), [size for _, size, _ in plan])
+
+
+def as_hog_input(image, color: bool) -> "np.ndarray | ScaledImages":
+    """:func:`to_gray_float` of an image; a :class:`ScaledImages` is returned as it is (checked for ``color``)."""
+    if isinstance(image, ScaledImages):
+        if image.color != bool(color):
+            raise ValueError(f"images prepared with color={image.color} for HOG with color={bool(color)}")
+        return image
+    return to_gray_float(image, color)
+
+
 def _subcell_offsets(h: int, w: int, cell: int) -> tuple[np.ndarray, np.ndarray]:
     """Per row and per column, the part of a pixel's histogram slot that its half-cell decides.
 
@@ -166,9 +225,16 @@ def _cell_histograms(img: np.ndarray, cell: int) -> np.ndarray:
     """(Hc, Wc, 18) orientation histograms with linear orientation and bilinear spatial votes."""
     h, w = img.shape[:2]
     hc, wc = h // cell, w // cell
-    img = img[:hc * cell, :wc * cell]
+    mag, ang = _gradients(img[:hc * cell, :wc * cell])
+    if _hog_kernel.AVAILABLE and not _NUMPY_ONLY:
+        return _hog_kernel.cell_histograms(mag, ang, hc, wc, cell)
+    return _cell_histograms_numpy(mag, ang, hc, wc, cell)
+
+
+def _cell_histograms_numpy(mag: np.ndarray, ang: np.ndarray, hc: int, wc: int, cell: int) -> np.ndarray:
+    """:func:`_cell_histograms` from the gradients in numpy (the reference of :mod:`signatures._hog_kernel`,
+    and the code path without numba)."""
     h, w = hc * cell, wc * cell
-    mag, ang = _gradients(img)
     # Linear vote between the two nearest of 18 bins centred at 0, 20, .. 340 degrees.
     b = ang.ravel()
     b *= np.float32(_N_BINS / 360.0)
@@ -244,6 +310,8 @@ def fhog(image: np.ndarray, cell: int = 8, clip: float = 0.2, color: bool = Fals
     hist = _cell_histograms(img, cell)                       # (hc, wc, 18)
     insens = hist[:, :, :9] + hist[:, :, 9:]                 # (hc, wc, 9)
     energy = np.einsum("ijk,ijk->ij", insens, insens)        # squared norm per cell
+    if _hog_kernel.AVAILABLE and not _NUMPY_ONLY:
+        return _hog_kernel.normalise(hist, insens, energy, clip, _EPS)
     # Energy of the 2x2 blocks with corners between cells (edge-replicated): block (i, j) covers
     # cells (i-1..i, j-1..j) of the padded grid; blk has shape (hc + 1, wc + 1).
     e = np.empty((hc + 2, wc + 2), energy.dtype)         # np.pad(energy, 1, mode="edge"), faster
@@ -366,13 +434,38 @@ def resize_area_region(img: np.ndarray, size: tuple[int, int], rows: tuple[int, 
     return out
 
 
-def _whole_level(img: np.ndarray, size: tuple[int, int], cfg: dict) -> np.ndarray:
-    """FHOG features of the whole level of ``size`` (width, height)."""
-    lvl = img if tuple(size) == img.shape[1::-1] else cv2.resize(img, tuple(size), interpolation=_INTERP)
+def _whole_level(img, size: tuple[int, int], cfg: dict) -> np.ndarray:
+    """FHOG features of the whole level of ``size`` (width, height) of an image or :class:`ScaledImages`."""
+    lvl = img.resized(size) if isinstance(img, ScaledImages) else None
+    if lvl is None:
+        base = img.image if isinstance(img, ScaledImages) else img
+        lvl = base if tuple(size) == base.shape[1::-1] else cv2.resize(base, tuple(size), interpolation=_INTERP)
     return fhog(lvl, int(cfg["cell"]), float(cfg["clip"]), bool(cfg["color"]))
 
 
-def _level_region(img: np.ndarray, size: tuple[int, int], box, cfg: dict, full_fraction: float):
+def _region_extent(image_size, size: tuple[int, int], box, cell: int, full_fraction: float):
+    """Where :func:`_level_region` computes: None for the whole level, else the described cell box
+    ``(a0, a1, b0, b1)`` (the requested box with its margin) and the exact cell box ``(e0, e1, g0, g1)``
+    it returns as ``valid`` (end exclusive)."""
+    lw, lh = size
+    hc, wc = lh // cell, lw // cell
+    r0, r1 = max(0, int(box[0])), min(hc, int(box[1]))
+    c0, c1 = max(0, int(box[2])), min(wc, int(box[3]))
+    m = REGION_MARGIN_CELLS
+    a0, a1 = max(0, r0 - m), min(hc, r1 + m)
+    b0, b1 = max(0, c0 - m), min(wc, c1 + m)
+    w, h = image_size
+    upscale = lw > w or lh > h
+    if r1 <= r0 or c1 <= c0 or upscale or (a1 - a0) * (b1 - b0) > full_fraction * hc * wc:
+        return None
+    # Cells next to the crop's edges miss neighbours the whole level has: keep only exact ones
+    # (at the level's own border the crop has the same border as the level).
+    e0, e1 = (a0 + m if a0 > 0 else 0), (a1 - m if a1 < hc else hc)
+    g0, g1 = (b0 + m if b0 > 0 else 0), (b1 - m if b1 < wc else wc)
+    return (a0, a1, b0, b1), (e0, e1, g0, g1)
+
+
+def _level_region(img, size: tuple[int, int], box, cfg: dict, full_fraction: float):
     """FHOG features of one level computed only around a cell box.
 
     Returns ``(features, valid)``: features of the whole level's shape, zero outside ``valid``, the
@@ -381,28 +474,19 @@ def _level_region(img: np.ndarray, size: tuple[int, int], box, cfg: dict, full_f
     (one OpenCV resize is cheaper then) and ``valid`` is None.
     """
     cell, clip, color = int(cfg["cell"]), float(cfg["clip"]), bool(cfg["color"])
-    lw, lh = size
-    hc, wc = lh // cell, lw // cell
-    r0, r1 = max(0, int(box[0])), min(hc, int(box[1]))
-    c0, c1 = max(0, int(box[2])), min(wc, int(box[3]))
-    m = REGION_MARGIN_CELLS
-    a0, a1 = max(0, r0 - m), min(hc, r1 + m)
-    b0, b1 = max(0, c0 - m), min(wc, c1 + m)
-    h, w = img.shape[:2]
-    upscale = lw > w or lh > h
-    if r1 <= r0 or c1 <= c0 or upscale or (a1 - a0) * (b1 - b0) > full_fraction * hc * wc:
+    extent = _region_extent(img.shape[1::-1], size, box, cell, full_fraction)
+    if extent is None:
         return _whole_level(img, size, cfg), None
+    (a0, a1, b0, b1), (e0, e1, g0, g1) = extent
+    lw, lh = size
     rows, cols = (a0 * cell, a1 * cell), (b0 * cell, b1 * cell)
-    if (lw, lh) == (w, h):
-        lvl = img[rows[0]:rows[1], cols[0]:cols[1]]
+    whole = img.resized(size) if isinstance(img, ScaledImages) else (img if (lw, lh) == img.shape[1::-1] else None)
+    if whole is not None:
+        lvl = whole[rows[0]:rows[1], cols[0]:cols[1]]
     else:
-        lvl = resize_area_region(img, (lw, lh), rows, cols)
+        lvl = resize_area_region(img.image if isinstance(img, ScaledImages) else img, (lw, lh), rows, cols)
     f = fhog(lvl, cell, clip, color)
-    # Cells next to the crop's edges miss neighbours the whole level has: keep only exact ones
-    # (at the level's own border the crop has the same border as the level).
-    e0, e1 = (a0 + m if a0 > 0 else 0), (a1 - m if a1 < hc else hc)
-    g0, g1 = (b0 + m if b0 > 0 else 0), (b1 - m if b1 < wc else wc)
-    out = np.zeros((hc, wc, FEATURE_DIM), np.float32)
+    out = np.zeros((lh // cell, lw // cell, FEATURE_DIM), np.float32)
     out[e0:e1, g0:g1] = f[e0 - a0:e1 - a0, g0 - b0:g1 - b0]
     return out, (e0, e1, g0, g1)
 
@@ -482,7 +566,7 @@ class HogPyramid:
 
 
 def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None, regions: dict | None = None,
-                  full_fraction: float = 0.8, threads: int = 1) -> HogPyramid:
+                  full_fraction: float = _FULL_FRACTION, threads: int = 1) -> HogPyramid:
     """HOG pyramid of one image.
 
     Parameters
@@ -512,7 +596,7 @@ def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None, re
     """
     cfg = merge_settings(default_config, config, "HOG")
     tune_malloc()        # before the first resize, not only the first fhog (see tune_malloc)
-    img = to_gray_float(image, bool(cfg["color"]))
+    img = as_hog_input(image, bool(cfg["color"]))
     plan = level_plan(img.shape[1::-1], cfg, levels, regions)
     feats = thread_map(lambda p: build_level(img, p[1], p[2], cfg, full_fraction), plan, threads,
                        cost=[p[1][0] * p[1][1] for p in plan])
@@ -532,9 +616,10 @@ def level_plan(image_size: tuple[int, int], cfg: dict, levels=None, regions: dic
     return plan
 
 
-def build_level(img: np.ndarray, size: tuple[int, int], box, cfg: dict, full_fraction: float = 0.8):
-    """``(features, valid)`` of one level of ``size`` of the float image ``img`` (:func:`to_gray_float`):
-    the whole level (``valid`` None) or only around the cell ``box`` (see :func:`build_pyramid`)."""
+def build_level(img, size: tuple[int, int], box, cfg: dict, full_fraction: float = _FULL_FRACTION):
+    """``(features, valid)`` of one level of ``size`` of the float image ``img`` (:func:`to_gray_float`,
+    or a :class:`ScaledImages`, whose resizes are used): the whole level (``valid`` None) or only
+    around the cell ``box`` (see :func:`build_pyramid`)."""
     if box is None:
         return _whole_level(img, size, cfg), None
     return _level_region(img, size, box, cfg, full_fraction)

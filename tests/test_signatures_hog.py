@@ -175,3 +175,50 @@ def test_thread_map_works_in_a_forked_child():
     hog.thread_map(abs, [1, -2, 3], threads=2)            # the parent's pool exists now
     with mp.get_context("fork").Pool(1) as pool:
         assert pool.apply(hog.thread_map, (abs, [-1, -2, -3], 2)) == [1, 2, 3]
+
+
+def _numpy_fhog(monkeypatch, *args):
+    monkeypatch.setattr(hog, "_NUMPY_ONLY", True)
+    try:
+        return hog.fhog(*args)
+    finally:
+        monkeypatch.setattr(hog, "_NUMPY_ONLY", False)
+
+
+@pytest.mark.skipif(not hog._hog_kernel.AVAILABLE, reason="numba is not installed: fhog runs in numpy only")
+@pytest.mark.parametrize("color", [False, True])
+def test_compiled_fhog_equals_the_numpy_fhog_bit_for_bit(monkeypatch, color):
+    rng = np.random.default_rng(3)
+    images = [_textured(240, 320, seed=4), rng.integers(0, 256, (123, 77), dtype=np.uint8),
+              rng.integers(0, 256, (8, 8), dtype=np.uint8), _edge_image(), np.zeros((40, 48), np.uint8),
+              np.full((33, 65), 255, np.uint8)]
+    for img in images:
+        if color:
+            img = np.dstack([img, img[::-1], 255 - img])
+        for clip in (0.2, 0.1):
+            a = hog.fhog(img, 8, clip, color)
+            b = _numpy_fhog(monkeypatch, img, 8, clip, color)
+            assert a.dtype == b.dtype == np.float32 and np.array_equal(a, b)
+    # A camera view of textured planes: every other level of its pyramid.
+    import cv2
+    from point_world import camera_pose, render, vehicle_pose
+    frame = hog.to_gray_float(render(camera_pose(vehicle_pose(2.0, 0.3, 0.05)))[0])
+    for k in range(0, 9, 2):
+        size = hog.level_size(frame.shape[1::-1], k, 4)
+        lvl = frame if k == 0 else cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
+        assert np.array_equal(hog.fhog(lvl), _numpy_fhog(monkeypatch, lvl))
+
+
+def test_scaled_images_give_the_same_pyramid_regions_as_the_image():
+    img = _textured(240, 320, seed=5)
+    cfg = dict(hog.default_config)
+    scaled = hog.ScaledImages.for_pyramid(img, cfg)
+    assert scaled.resized((320, 240)) is scaled.image and scaled.resized((7, 7)) is None
+    regions = {0: (3, 12, 5, 20), 1: (0, 9, 0, 30), 3: (8, 14, 10, 18), 5: (0, 100, 0, 100)}
+    a = hog.build_pyramid(img, cfg, levels=[0, 1, 3, 5, 6], regions=regions)
+    b = hog.build_pyramid(scaled, cfg, levels=[0, 1, 3, 5, 6], regions=regions)
+    assert a.regions == b.regions and sorted(a.levels) == sorted(b.levels)
+    for k in a.levels:
+        assert np.array_equal(a.levels[k], b.levels[k])
+    with pytest.raises(ValueError, match="color"):
+        hog.build_pyramid(scaled, {"color": True})
