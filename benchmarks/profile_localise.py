@@ -18,8 +18,9 @@ detector on every ``--every``-th frame; the demo's 10 Hz camera with ``--every 2
   in the stages; with ``--threads 2`` it includes the main thread waiting for a level another
   thread describes).
 
-The detector describes and scores the pyramid levels on ``--threads`` threads (default 2, as
-``scenesig localise``); ``--threads 1`` gives the serial profile, where the stages add up.
+The detector describes and scores the pyramid levels on its own threads by default (as
+``scenesig localise``: two for a whole-image search, one for a windowed one); ``--threads N``
+uses N for both, and ``--threads 1`` gives the serial profile, where the stages add up.
 
 Each stage has ``ms`` (wall, exclusive: a stage called inside another is charged to itself),
 ``cpu_ms`` (CPU time of the thread that ran it), ``calls``, both per detector frame, and
@@ -62,7 +63,7 @@ def _targets():
 
 
 def profile_localise(map_root, run_root, method: str = "signatures", every: int = 2,
-                     prefetch: bool = True, threads: int = 2) -> dict:
+                     prefetch: bool = True, threads: int | None = None) -> dict:
     """Replay ``run_root`` against ``map_root`` with stage timers (module docstring)."""
     from benchmarks._stages import StageTimer
     from benchmarks._timing import queued_seconds
@@ -77,8 +78,8 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
     with timer.patch(*_targets()):
         c0, m0 = time.process_time(), time.thread_time()
         config = {"prefetch": bool(prefetch)}
-        if method == "signatures":
-            config["method"] = {"detector": {"threads": int(threads)}}
+        if method == "signatures" and threads is not None:
+            config["method"] = {"detector": {"threads": int(threads), "window_threads": int(threads)}}
         res = replay(store, run, method, every=every, config=config)
         cpu, main_cpu = time.process_time() - c0, time.thread_time() - m0
     q1 = queued_seconds()
@@ -97,7 +98,7 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
                              "cpu_ms_per_detector_frame": round(1e3 * book_cpu / max(n_det, 1), 3),
                              "threads": ["MainThread"]}
     return {"map": str(map_root), "run": run.name, "method": res.method, "every": every, "prefetch": bool(prefetch),
-            "threads": int(threads) if method == "signatures" else None,
+            "threads": (None if threads is None else int(threads)) if method == "signatures" else None,
             "frames": len(res.times), "detector_frames": n_det, "duration_s": round(tm["duration_s"], 3),
             "wall_seconds": round(tm["wall_seconds"], 3), "cpu_seconds": round(cpu, 3),
             "realtime_factor": round(tm["realtime_factor"], 3),
@@ -118,8 +119,9 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="signatures")
     ap.add_argument("--every", type=int, default=2, help="detector on every N-th frame (default 2: 5 Hz at 10 Hz)")
     ap.add_argument("--no-prefetch", action="store_true", help="decode frames inline (serial profile)")
-    ap.add_argument("--threads", type=int, default=2,
-                    help="detector threads (pyramid levels at once; default 2; 1: serial profile)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="detector threads, whole-image and windowed (pyramid levels at once; default: the "
+                         "detector's own, 2 and 1; 1: serial profile)")
     ap.add_argument("--json", help="write the result JSON here")
     args = ap.parse_args(argv)
     res = profile_localise(args.map, args.run, args.method, args.every, not args.no_prefetch, args.threads)

@@ -27,7 +27,8 @@ the firings into measurements for the eq. 10 solver:
   the cells the windows' detections can touch (:meth:`signatures.bank.Bank.pyramid`; about half of
   each level when tracking), bit-identical to the whole level's features there; the small
   multiplies run on one BLAS thread (``blas_threads``), and the levels -- each one's features,
-  then its filter responses -- on ``threads`` threads (the same detections for any count).
+  then its filter responses -- on ``threads`` threads for a whole-image search and
+  ``window_threads`` for a windowed one (the same detections for any count).
 * **prefetching** -- a place's bank is decoded (``Bank.from_arrays``) on a background thread as
   soon as the localiser names the next place, so switching places does not stall detection.
 
@@ -73,8 +74,11 @@ default_config = {
     # thread only spins (~30 % more CPU, taken from the other blocks or the other process), and a
     # fixed count gives the same floating-point sums -- the same detections -- on every machine.
     "blas_threads": 1,
-    # Pyramid levels described and scored at once (signatures.bank: the same detections for any count).
+    # Pyramid levels described and scored at once (signatures.bank: the same detections for any
+    # count): on two threads for a whole-image search (large levels); a windowed search's regions
+    # are small, and a second thread only adds its hand-overs (replays measured no faster).
     "threads": 2,
+    "window_threads": 1,
 }
 
 
@@ -324,10 +328,10 @@ class Detector:
             levels = self._predicted_levels(sub, data.landmarks[sel], T_place_vehicle)
         # The bank builds exactly the levels searched, and at each only the cells the windows can
         # reach (a tracking detector looks at a fraction of each level; those cells equal the whole
-        # level's), describing and scoring the levels on ``threads`` threads.
+        # level's), describing and scoring the levels on ``threads`` (``window_threads``) threads.
+        threads = int(self.config["threads"] if windows is None else self.config["window_threads"])
         d = sub.detect(image, windows=windows, top_n=int(self.config["top_n"]), levels=levels,
-                       config={"scale_search": int(self.config["scale_search"]),
-                               "threads": int(self.config["threads"])})
+                       config={"scale_search": int(self.config["scale_search"]), "threads": threads})
         x, y, prob = d.x[:, 0], d.y[:, 0], d.prob[:, 0]
         good = np.isfinite(x) & np.isfinite(y) & (prob >= self.config["min_probability"]) & (d.scale[:, 0] > 0)
         j = np.flatnonzero(good)

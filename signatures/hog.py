@@ -140,29 +140,41 @@ def to_gray_float(image: np.ndarray, color: bool = False) -> np.ndarray:
 
 
 class ScaledImages:
-    """An image ready for HOG (:func:`to_gray_float`) and its pyramid levels' resizes.
+    """An image ready for HOG (:func:`to_gray_float`), its pyramid levels' resizes, and the whole
+    levels described so far.
 
     The resizes depend on the image alone -- not on which levels or cells a detector will search --
-    so a replay computes them for the next frame on a worker thread while the current frame is
-    solved (:meth:`localiser.pipeline.SignatureLocaliser.prepare`).  :func:`build_level` then crops
-    a level's region out of its resize instead of resizing the region: the same values bit for bit
-    (:func:`resize_area_region` equals the crop of OpenCV's resize for integer-valued images, which
-    :func:`to_gray_float` of a uint8 image always is), so the features do not change.
+    so a replay makes them for the next frame on a worker thread while the current frame is solved
+    (:meth:`localiser.pipeline.SignatureLocaliser.prepare`).  :func:`build_level` then takes a
+    level's region from here, with the values it would have computed bit for bit:
+
+    * resizes: :func:`resize_area_region` equals the crop of OpenCV's resize for integer-valued
+      images, which :func:`to_gray_float` of a uint8 image always is;
+    * features: a level described whole once (a whole-image search) is kept, and later searches in
+      the same image -- the relocaliser tries several places' banks on one frame -- take it or a
+      region of it: the cells a region keeps (:data:`REGION_MARGIN_CELLS` inside its crop) are
+      exactly the whole level's, the same invariance that lets a detector describe only its windows.
+
+    (Describing the whole pyramid ahead on the worker thread was measured slower: its many short
+    steps wait for Python's interpreter lock about as long as they save the detector.)
 
     Parameters
     ----------
     image : gray or BGR image (uint8 expected).
-    color : as :data:`default_config`'s ``color``.
+    config : HOG parameters (:data:`default_config` overrides).
     sizes : (width, height) of the levels to resize now (others are never made here: a region of
         them is resized on its own, which is cheaper when only part of the level is needed).
     """
 
-    def __init__(self, image: np.ndarray, color: bool = False, sizes=()):
-        self.image = to_gray_float(image, color)
-        self.color = bool(color)
+    def __init__(self, image: np.ndarray, config: dict | None = None, sizes=()):
+        cfg = merge_settings(default_config, config, "HOG")
+        self.config = cfg
+        self.color = bool(cfg["color"])
+        self.image = to_gray_float(image, self.color)
         own = self.image.shape[1::-1]
         self._levels = {tuple(map(int, s)): cv2.resize(self.image, tuple(map(int, s)), interpolation=_INTERP)
                         for s in sizes if tuple(map(int, s)) != own}
+        self._features: dict = {}
 
     @property
     def shape(self) -> tuple:
@@ -175,13 +187,25 @@ class ScaledImages:
             return self.image
         return self._levels.get(size)
 
+    def _same_hog(self, cfg: dict) -> bool:
+        return all(self.config.get(key) == cfg.get(key) for key in ("cell", "clip", "color"))
+
+    def features(self, size, cfg: dict) -> np.ndarray | None:
+        """The whole level's features if it was described with the HOG parameters ``cfg``, else None."""
+        return self._features.get((int(size[0]), int(size[1]))) if self._same_hog(cfg) else None
+
+    def keep(self, size, cfg: dict, feat: np.ndarray) -> None:
+        """Remember a whole level's features (described with ``cfg``)."""
+        if self._same_hog(cfg):
+            self._features[(int(size[0]), int(size[1]))] = feat
+
     @classmethod
     def for_pyramid(cls, image: np.ndarray, config: dict | None = None, levels=None) -> "ScaledImages":
         """``image`` with the resizes of pyramid ``levels`` (default those of :func:`build_pyramid`)."""
         cfg = merge_settings(default_config, config, "HOG")
         h, w = np.asarray(image).shape[:2]
         plan = level_plan((w, h), cfg, levels)
-        return cls(image, bool(cfg["color"]), [size for _, size, _ in plan])
+        return cls(image, cfg, [size for _, size, _ in plan])
 
 
 def as_hog_input(image, color: bool) -> "np.ndarray | ScaledImages":
@@ -436,11 +460,17 @@ def resize_area_region(img: np.ndarray, size: tuple[int, int], rows: tuple[int, 
 
 def _whole_level(img, size: tuple[int, int], cfg: dict) -> np.ndarray:
     """FHOG features of the whole level of ``size`` (width, height) of an image or :class:`ScaledImages`."""
-    lvl = img.resized(size) if isinstance(img, ScaledImages) else None
-    if lvl is None:
-        base = img.image if isinstance(img, ScaledImages) else img
-        lvl = base if tuple(size) == base.shape[1::-1] else cv2.resize(base, tuple(size), interpolation=_INTERP)
-    return fhog(lvl, int(cfg["cell"]), float(cfg["clip"]), bool(cfg["color"]))
+    if not isinstance(img, ScaledImages):
+        lvl = img if tuple(size) == img.shape[1::-1] else cv2.resize(img, tuple(size), interpolation=_INTERP)
+        return fhog(lvl, int(cfg["cell"]), float(cfg["clip"]), bool(cfg["color"]))
+    feat = img.features(size, cfg)
+    if feat is None:
+        lvl = img.resized(size)
+        if lvl is None:
+            lvl = cv2.resize(img.image, tuple(size), interpolation=_INTERP)
+        feat = fhog(lvl, int(cfg["cell"]), float(cfg["clip"]), bool(cfg["color"]))
+        img.keep(size, cfg, feat)
+    return feat
 
 
 def _region_extent(image_size, size: tuple[int, int], box, cell: int, full_fraction: float):
@@ -479,6 +509,11 @@ def _level_region(img, size: tuple[int, int], box, cfg: dict, full_fraction: flo
         return _whole_level(img, size, cfg), None
     (a0, a1, b0, b1), (e0, e1, g0, g1) = extent
     lw, lh = size
+    out = np.zeros((lh // cell, lw // cell, FEATURE_DIM), np.float32)
+    whole = img.features(size, cfg) if isinstance(img, ScaledImages) else None
+    if whole is not None:               # described whole before: the kept cells are the whole level's
+        out[e0:e1, g0:g1] = whole[e0:e1, g0:g1]
+        return out, (e0, e1, g0, g1)
     rows, cols = (a0 * cell, a1 * cell), (b0 * cell, b1 * cell)
     whole = img.resized(size) if isinstance(img, ScaledImages) else (img if (lw, lh) == img.shape[1::-1] else None)
     if whole is not None:
@@ -486,7 +521,6 @@ def _level_region(img, size: tuple[int, int], box, cfg: dict, full_fraction: flo
     else:
         lvl = resize_area_region(img.image if isinstance(img, ScaledImages) else img, (lw, lh), rows, cols)
     f = fhog(lvl, cell, clip, color)
-    out = np.zeros((lh // cell, lw // cell, FEATURE_DIM), np.float32)
     out[e0:e1, g0:g1] = f[e0 - a0:e1 - a0, g0 - b0:g1 - b0]
     return out, (e0, e1, g0, g1)
 

@@ -220,5 +220,13 @@ def test_scaled_images_give_the_same_pyramid_regions_as_the_image():
     assert a.regions == b.regions and sorted(a.levels) == sorted(b.levels)
     for k in a.levels:
         assert np.array_equal(a.levels[k], b.levels[k])
+    # Levels described whole are kept, and later regions of them are taken from there.
+    whole = hog.build_pyramid(scaled, cfg, levels=[0, 1, 3, 5, 6])
+    assert scaled.features(scaled.resized((320, 240)).shape[1::-1], cfg) is whole.levels[0]
+    again = hog.build_pyramid(scaled, cfg, levels=[0, 1, 3, 5, 6], regions=regions)
+    assert again.regions == a.regions
+    for k in a.levels:
+        assert np.array_equal(a.levels[k], again.levels[k])
+    assert scaled.features((320, 240), dict(cfg, clip=0.1)) is None        # other HOG parameters
     with pytest.raises(ValueError, match="color"):
         hog.build_pyramid(scaled, {"color": True})
