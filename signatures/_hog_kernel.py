@@ -1,9 +1,10 @@
-"""Compiled orientation binning of :func:`signatures.hog.fhog` (numba), bit for bit the numpy code's.
+"""Compiled loops of :func:`signatures.hog.fhog` (numba), bit for bit the numpy code's.
 
-The numpy version (:func:`signatures.hog._cell_histograms_numpy`) makes about twenty passes over
-the pixels of a level -- scaling, clipping, flooring, two weighted ``np.bincount`` and the 1-3-3-1
-spatial taps -- each a separate array and, for a tracking detector's small regions, a separate
-trip through the interpreter.  Here one loop does the votes and one the taps, with the same
+The numpy version (:func:`signatures.hog._cell_histograms_numpy` and the block normalisation in
+:func:`signatures.hog.fhog`) makes about thirty passes over a level's pixels and cells -- scaling,
+clipping, flooring, two weighted ``np.bincount``, the 1-3-3-1 spatial taps, four normalisations --
+each a separate array and, for a tracking detector's small regions, a separate trip through the
+interpreter.  Here one loop does the votes, one the taps and one the normalisation, with the same
 arithmetic in the same order:
 
 * the orientation vote in float32: ``b = min(ang * 18/360, 18 - 1e-3)``, ``b0 = floor(b)``,
@@ -11,23 +12,28 @@ arithmetic in the same order:
 * the two ``np.bincount`` sums kept apart in float64, each accumulated in pixel order as
   ``np.bincount`` does, and added afterwards (``sub = lower + upper``), then bin 18 folded onto 0;
 * the taps in float32, ``((0.25 a + 0.75 b) + 0.75 c) + 0.25 d``, each product and sum rounded as
-  numpy rounds them (no fused multiply-add: numba leaves ``fastmath`` off).
+  numpy rounds them (no fused multiply-add: numba leaves ``fastmath`` off);
+* the normalisation in float32: the four block energies summed as numpy sums its shifted grids,
+  the four clipped normalisations summed in order, the texture sums of 18 values in numpy's
+  pairwise order.  The cells' squared norms stay ``np.einsum``'s (its float32 sum order is
+  numpy's own, SIMD-dependent), computed by the caller.
 
 So every feature, map and detection is unchanged (``tests/test_signatures_hog.py`` compares the two
-on random and real images).  Without numba, :mod:`signatures.hog` uses the numpy version.
+on random, synthetic and rendered images, gray and colour).  Without numba, or with the environment
+variable ``SCENESIG_NUMPY_HOG=1``, :mod:`signatures.hog` runs the numpy code.
 """
 from __future__ import annotations
 
-import numpy as np
+import importlib.util
 
-try:
-    import numba
-except ImportError:       # pragma: no cover - numba is a dependency; the numpy path stays correct
-    numba = None
+import numpy as np
 
 __all__ = ["AVAILABLE", "cell_histograms", "normalise", "warm_up"]
 
-AVAILABLE = numba is not None
+#: numba is installed (a dependency; without it :mod:`signatures.hog` runs the numpy code).  It is
+#: imported, and the loops loaded from its cache, on first use: commands that never describe an
+#: image do not pay the ~0.3 s import.
+AVAILABLE = importlib.util.find_spec("numba") is not None
 
 _N_BINS = 18
 _SCALE = np.float32(_N_BINS / 360.0)
@@ -141,11 +147,16 @@ def _normalise(hist, insens, energy, clip, eps):
     return out
 
 
-if AVAILABLE:
-    _compiled = numba.njit(cache=True, nogil=True)(_cell_histograms)
-    _compiled_normalise = numba.njit(cache=True, nogil=True)(_normalise)
-else:                                   # pragma: no cover
-    _compiled = _compiled_normalise = None
+_COMPILED: dict = {}
+
+
+def _compiled(name: str):
+    fn = _COMPILED.get(name)
+    if fn is None:
+        import numba
+
+        fn = _COMPILED[name] = numba.njit(cache=True, nogil=True)(globals()[name])
+    return fn
 
 
 def normalise(hist: np.ndarray, insens: np.ndarray, energy: np.ndarray, clip: float, eps: float) -> np.ndarray:
@@ -153,15 +164,15 @@ def normalise(hist: np.ndarray, insens: np.ndarray, energy: np.ndarray, clip: fl
     sums and those sums' squared norms ``energy`` (computed by the caller with ``np.einsum``, whose
     float32 sum order is numpy's own): the block normalisation of :func:`signatures.hog.fhog`, in the
     same float32 operations and order."""
-    return _compiled_normalise(np.ascontiguousarray(hist, np.float32), np.ascontiguousarray(insens, np.float32),
-                               np.ascontiguousarray(energy, np.float32), np.float32(clip), np.float32(eps))
+    return _compiled("_normalise")(np.ascontiguousarray(hist, np.float32), np.ascontiguousarray(insens, np.float32),
+                                   np.ascontiguousarray(energy, np.float32), np.float32(clip), np.float32(eps))
 
 
 def cell_histograms(mag: np.ndarray, ang: np.ndarray, hc: int, wc: int, cell: int) -> np.ndarray:
     """(hc, wc, 18) float32 histograms from float32 gradient magnitude and angle (degrees) of an
     (hc*cell, wc*cell) image -- the compiled loops (numba required: check :data:`AVAILABLE`)."""
-    return _compiled(np.ascontiguousarray(mag, np.float32), np.ascontiguousarray(ang, np.float32),
-                     int(hc), int(wc), int(cell))
+    return _compiled("_cell_histograms")(np.ascontiguousarray(mag, np.float32),
+                                         np.ascontiguousarray(ang, np.float32), int(hc), int(wc), int(cell))
 
 
 def warm_up() -> None:

@@ -2,8 +2,10 @@
 
 Every classifier of a place (and the mining of all 296 candidate shapes) reads from the same
 pyramid, so the pyramid is the only per-image cost that scales with resolution; it is written for
-speed: gradients with OpenCV, orientation and spatial binning with two weighted ``np.bincount``
-passes, block normalisation vectorised over the whole cell grid.
+speed: gradients with OpenCV, orientation and spatial binning and block normalisation in compiled
+loops (:mod:`signatures._hog_kernel`, numba), which give bit for bit the features of the numpy
+code kept beside them (two weighted ``np.bincount`` passes, normalisation vectorised over the
+cell grid; used without numba).
 
 Features per 8x8-pixel cell (Felzenszwalb et al., PAMI 2010, "FHOG"):
 
