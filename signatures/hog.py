@@ -61,7 +61,7 @@ default_config = {
 FEATURE_DIM = 31
 
 _N_BINS = 18
-# SCENESIG_NUMPY_HOG=1: the numpy orientation binning even where numba is installed (the same features).
+# SCENESIG_NUMPY_HOG=1: the numpy HOG loops even where numba is installed (the same features).
 _NUMPY_ONLY = bool(os.environ.get("SCENESIG_NUMPY_HOG"))
 # cv2.resize INTER_AREA is the right anti-aliasing filter for downscaling by non-integer factors.
 _INTERP = cv2.INTER_AREA
@@ -197,8 +197,10 @@ class ScaledImages:
         return self._features.get((int(size[0]), int(size[1]))) if self._same_hog(cfg) else None
 
     def keep(self, size, cfg: dict, feat: np.ndarray) -> None:
-        """Remember a whole level's features (described with ``cfg``)."""
+        """Remember a whole level's features (described with ``cfg``; read-only from now on, since
+        every later search of this image shares them)."""
         if self._same_hog(cfg):
+            feat.flags.writeable = False
             self._features[(int(size[0]), int(size[1]))] = feat
 
     @classmethod
