@@ -21,8 +21,11 @@ def test_bank_of_draws_with_repetition_only_when_needed():
 def test_speed_bench_targets(tmp_path):
     class Args:
         json = str(tmp_path / "speed.json")
+        train_repeats = 2
     assert run_from_args(Args()) == 0
     res = json.loads((tmp_path / "speed.json").read_text())
+    runs = res["train_seconds_per_place_runs"]
+    assert len(runs) == 2 and res["train_seconds_per_place"] == pytest.approx(sum(runs) / 2, abs=0.011)
     assert res["hog_ms_per_level"] <= 10.0
     assert res["train_seconds_per_place"] <= 30.0
     assert res["detect_ms_per_frame"]["50"] <= 50.0
