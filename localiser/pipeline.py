@@ -34,10 +34,9 @@ from typing import Callable
 import numpy as np
 
 from mapping.store import MapStore
-from surveys.settings import merge_settings
-from signatures import _hog_kernel
-from signatures.hog import ScaledImages
+from signatures.hog import ScaledImages, load_compiled
 from surveys.geometry import Camera, invert
+from surveys.settings import merge_settings
 
 from .detector import Detector, Observation
 from .posegraph import PoseGraph
@@ -225,7 +224,7 @@ class SignatureLocaliser(WeakLocaliser):
         self.detector = Detector(store, camera, T_vehicle_camera, cfg["detector"])
         self.color = False
         self._hog = None
-        _hog_kernel.warm_up()          # before the replay's clock starts, like opening the map
+        load_compiled()                # before the replay's clock starts, like opening the map
         # The banks' HOG parameters decide gray or colour input (all places share them).
         for idx in store.places:
             lp = self.detector.place(idx)

@@ -45,7 +45,7 @@ from surveys.settings import merge_settings
 
 __all__ = ["default_config", "FEATURE_DIM", "fhog", "HogPyramid", "build_pyramid", "level_scale",
            "level_size", "window_cell", "resize_area_region", "to_gray_float", "REGION_MARGIN_CELLS",
-           "level_plan", "build_level", "assemble_pyramid", "thread_map", "ScaledImages"]
+           "level_plan", "build_level", "assemble_pyramid", "thread_map", "ScaledImages", "load_compiled"]
 
 #: HOG parameters.  Every classifier stores the values it was trained with; detection refuses a
 #: pyramid built with different ones.
@@ -98,6 +98,13 @@ def tune_malloc() -> bool:
         return bool(ok)
     except (OSError, AttributeError):
         return False
+
+
+def load_compiled() -> None:
+    """Load the compiled HOG loops (:mod:`signatures._hog_kernel`) now rather than at the first
+    image: about half a second from numba's cache, a few seconds the very first time."""
+    if _hog_kernel.AVAILABLE and not _NUMPY_ONLY:
+        _hog_kernel.warm_up()
 
 
 def level_scale(k: int | np.ndarray, scales_per_octave: int) -> float | np.ndarray:

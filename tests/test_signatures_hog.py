@@ -178,11 +178,9 @@ def test_thread_map_works_in_a_forked_child():
 
 
 def _numpy_fhog(monkeypatch, *args):
-    monkeypatch.setattr(hog, "_NUMPY_ONLY", True)
-    try:
+    with monkeypatch.context() as m:
+        m.setattr(hog, "_NUMPY_ONLY", True)
         return hog.fhog(*args)
-    finally:
-        monkeypatch.setattr(hog, "_NUMPY_ONLY", False)
 
 
 @pytest.mark.skipif(not hog._hog_kernel.AVAILABLE, reason="numba is not installed: fhog runs in numpy only")
