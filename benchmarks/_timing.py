@@ -38,3 +38,23 @@ def median_ms_unqueued(fn, repeat: int = 20) -> tuple[float, float | None]:
         if q0 is not None and q1 is not None:
             us.append(dt - (q1 - q0))
     return 1000.0 * float(np.median(ts)), (1000.0 * float(np.median(us)) if us else None)
+
+
+def reference_seconds() -> float:
+    """Wall time of a fixed single-threaded workload (a 3-million-step Python loop and 300 products of
+    200x200 matrices on one BLAS thread): about 0.4 s on the development machine at its usual speed.
+
+    A shared virtual machine's speed drifts (this one by half within minutes, with nothing else
+    running), so a timing means little without the machine's speed at that moment: benchmarks
+    report this before and after their own work (``machine_reference_seconds``)."""
+    from threadpoolctl import threadpool_limits
+
+    a = np.random.default_rng(0).random((200, 200))
+    t0 = time.perf_counter()
+    x = 0
+    for j in range(3_000_000):
+        x += j * j
+    with threadpool_limits(limits=1):
+        for _ in range(300):
+            a @ a
+    return round(time.perf_counter() - t0, 3)

@@ -22,6 +22,10 @@ The detector describes and scores the pyramid levels on its own threads by defau
 ``scenesig localise``: two for a whole-image search, one for a windowed one); ``--threads N``
 uses N for both, and ``--threads 1`` gives the serial profile, where the stages add up.
 
+``machine_reference_seconds`` is a fixed workload's time before and after the replay
+(:func:`benchmarks._timing.reference_seconds`, ~0.4 s on the development machine at its usual speed):
+the machine's speed while the profile was taken.
+
 Each stage has ``ms`` (wall, exclusive: a stage called inside another is charged to itself),
 ``cpu_ms`` (CPU time of the thread that ran it), ``calls``, both per detector frame, and
 ``threads``.  ``realtime_factor`` and ``wall_seconds`` are the replay's own (data duration / wall
@@ -66,7 +70,7 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
                      prefetch: bool = True, threads: int | None = None) -> dict:
     """Replay ``run_root`` against ``map_root`` with stage timers (module docstring)."""
     from benchmarks._stages import StageTimer
-    from benchmarks._timing import queued_seconds
+    from benchmarks._timing import queued_seconds, reference_seconds
     from localiser.replay import replay
     from mapping.store import MapStore
     from surveys.run import read_run
@@ -74,6 +78,7 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
     store = MapStore.open(map_root)
     run = read_run(run_root)
     timer = StageTimer()
+    ref0 = reference_seconds()
     q0 = queued_seconds()
     with timer.patch(*_targets()):
         c0, m0 = time.process_time(), time.thread_time()
@@ -97,7 +102,9 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
                              "ms_per_detector_frame": round(1e3 * book / max(n_det, 1), 3),
                              "cpu_ms_per_detector_frame": round(1e3 * book_cpu / max(n_det, 1), 3),
                              "threads": ["MainThread"]}
+    ref1 = reference_seconds()
     return {"map": str(map_root), "run": run.name, "method": res.method, "every": every, "prefetch": bool(prefetch),
+            "machine_reference_seconds": [ref0, ref1],
             "threads": (None if threads is None else int(threads)) if method == "signatures" else None,
             "frames": len(res.times), "detector_frames": n_det, "duration_s": round(tm["duration_s"], 3),
             "wall_seconds": round(tm["wall_seconds"], 3), "cpu_seconds": round(cpu, 3),

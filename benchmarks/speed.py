@@ -17,7 +17,9 @@ seed=0, n=31)``; the JSON's ``images`` names them):
   localiser runs it;
 * ``hog_pyramid_ms`` (the levels the 50-classifier bank needs) and ``hog_ms_per_level``
   (640x480, one core);
-* ``blas`` -- the BLAS library numpy uses (threadpoolctl).
+* ``blas`` -- the BLAS library numpy uses (threadpoolctl);
+* ``machine_reference_seconds`` -- a fixed workload's time before and after
+  (:func:`benchmarks._timing.reference_seconds`): the machine's speed while the figures were taken.
 
 Timings are medians over repeats.  Wall time on a loaded machine measures the load as much as the
 code, so the JSON also holds the CPU time of the process -- ``train_cpu_seconds_per_place`` and
@@ -38,7 +40,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from benchmarks._timing import median_ms, median_ms_unqueued
+from benchmarks._timing import median_ms, median_ms_unqueued, reference_seconds
 from signatures import hog as hogmod
 from signatures import mining
 from signatures.bank import Bank
@@ -86,6 +88,7 @@ def run_speed_bench(n_images: int = 31, repeat: int = 10, seed: int = 0, progres
                     train_repeats: int = 3) -> dict:
     """Run the benchmark and return the result dict (see module docstring)."""
     from threadpoolctl import threadpool_limits
+    ref0 = reference_seconds()
     images, offsets, source = place_images(n_images, seed)
     frame = images[-1]
     out = {"images": source, "n_images": len(images), "image_size": [640, 480],
@@ -140,6 +143,7 @@ def run_speed_bench(n_images: int = 31, repeat: int = 10, seed: int = 0, progres
     finally:
         cv2.setNumThreads(cv_threads)
     out["threads"] = {"train": 1, "detect": 2}
+    out["machine_reference_seconds"] = [ref0, reference_seconds()]
     out["load_average"] = [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None
     return out
 

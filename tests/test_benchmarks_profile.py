@@ -80,6 +80,8 @@ def test_profile_localise_reports_the_stages(tmp_path, capsys):
     assert st["image_decode"]["calls"] == res["detector_frames"]
     assert st["graph_update"]["calls"] > 0 and st["snap"]["calls"] >= res["frames"]
     assert "bookkeeping" in st and res["realtime_factor"] > 0
+    ref = res["machine_reference_seconds"]                # the machine's speed, before and after
+    assert len(ref) == 2 and all(v > 0 for v in ref)
     if res["main_thread_queued_seconds"] is not None:                  # Linux
         assert 0 <= res["main_thread_queued_seconds"] <= res["wall_seconds"]
         assert res["realtime_factor_unqueued"] >= res["realtime_factor"]
