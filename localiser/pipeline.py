@@ -38,6 +38,7 @@ from signatures.hog import ScaledImages, load_compiled
 from surveys.geometry import Camera, invert
 from surveys.settings import merge_settings
 
+from . import _solver_kernel
 from .detector import Detector, Observation
 from .posegraph import PoseGraph
 from .se2 import PlaneSnapper
@@ -225,6 +226,8 @@ class SignatureLocaliser(WeakLocaliser):
         self.color = False
         self._hog = None
         load_compiled()                # before the replay's clock starts, like opening the map
+        if self.solver_config["compiled"]:
+            _solver_kernel.warm_up()
         # The banks' HOG parameters decide gray or colour input (all places share them).
         for idx in store.places:
             lp = self.detector.place(idx)

@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from localiser import _solver_kernel
 from localiser.absolute_pose import default_config as absolute_pose_default
 from localiser.absolute_pose import estimate as estimate_absolute_pose
 from surveys.validation import check_array
@@ -69,6 +70,9 @@ default_config = {
     "step_tolerance": 1e-8,     # or the step's norm is below this
     "min_depth_m": 0.05,        # landmarks closer than this in front of the camera are unusable
     "backend": "numpy",         # "numpy" | "gtsam"
+    # numpy back end: the per-detection loops compiled (localiser._solver_kernel; the same results to
+    # rounding, about 1e-15 relative) where numba is installed; False: numpy array code.
+    "compiled": True,
 }
 
 # PnP (point-feature) defaults, used by solve_pnp_prior only: the robust initialisation is
@@ -185,7 +189,9 @@ class _Problem:
         self.camera = camera
         self.T_vehicle_camera = check_array(T_vehicle_camera, (4, 4), "T_vehicle_camera")
         T_cv = invert(self.T_vehicle_camera)
-        self.R_cv, self.t_cv = T_cv[:3, :3], T_cv[:3, 3]
+        self.R_cv, self.t_cv = np.ascontiguousarray(T_cv[:3, :3]), np.ascontiguousarray(T_cv[:3, 3])
+        self._compiled = bool(cfg.get("compiled", False)) and _solver_kernel.AVAILABLE
+        self._gathered: tuple = (None, None, None)        # (idx, landmarks[idx], uv[idx]) of the last call
         self.T_prior = None if T_prior is None else check_array(T_prior, (4, 4), "T_place_vehicle_prior")
         if T_prior is not None:
             P = check_array(P_prior, (6, 6), "P_prior")
@@ -226,8 +232,25 @@ class _Problem:
         W[:, 1, 1] = 1.0 / c
         return W
 
+    def _gather(self, idx):
+        """``landmarks[idx], uv[idx]`` (one LM round asks for the same rows twenty times)."""
+        last, L, uv = self._gathered
+        if last is not idx:
+            L, uv = np.ascontiguousarray(self.landmarks[idx], float), np.ascontiguousarray(self.uv[idx], float)
+            self._gathered = (idx, L, uv)
+        return L, uv
+
+    def _compiled_residuals(self, T, idx, W):
+        L, uv = self._gather(idx)
+        cam = self.camera
+        return _solver_kernel.residuals(L, uv, np.ascontiguousarray(W, float), np.ascontiguousarray(T[:3, :3]),
+                                        np.ascontiguousarray(T[:3, 3]), self.R_cv, self.t_cv, cam.fx, cam.fy,
+                                        cam.cx, cam.cy, self.cfg["min_depth_m"], _BEHIND_NORM, self.cfg["huber_k"])
+
     def residuals(self, T, idx, W):
         """Whitened residuals e (n,2) of z - h, norms c (n,), front mask, vehicle-frame points."""
+        if self._compiled:
+            return self._compiled_residuals(T, idx, W)[:5]
         P_v, P_c = self.points(T, idx)
         z = P_c[:, 2]
         front = z > self.cfg["min_depth_m"]
@@ -245,10 +268,14 @@ class _Problem:
 
     def evaluate(self, T, idx, W) -> tuple[float, tuple]:
         """Cost J(T) (eq. 10 with Huber) and the quantities ``linearise`` reuses."""
-        ev = self.residuals(T, idx, W)
-        c = ev[1]
-        k = self.cfg["huber_k"]
-        total = 0.5 * np.where(c < k, c * c, 2 * k * c - k * k).sum()
+        if self._compiled:
+            *ev, total = self._compiled_residuals(T, idx, W)
+            ev = tuple(ev)
+        else:
+            ev = self.residuals(T, idx, W)
+            c = ev[1]
+            k = self.cfg["huber_k"]
+            total = 0.5 * np.where(c < k, c * c, 2 * k * c - k * k).sum()
         q = None
         if self.P_inv is not None:
             q = self.prior_residual(T)
@@ -266,15 +293,19 @@ class _Problem:
         if ev is None:
             ev = self.evaluate(T, idx, W)[1]
         e, c, front, P_v, P_c, q = ev
-        D = point_pose_jacobian(P_v)         # d P_v / d ξ for T <- T·Exp(ξ)
-        Jp = self.camera.project_jacobian(np.where(front[:, None], P_c, [0, 0, 1.0]))
-        A = W @ (Jp @ (self.R_cv @ D))            # whitened d h / d ξ; e = W(z - h) so de/dξ = -A
         k = self.cfg["huber_k"]
-        w = np.where(c < k, 1.0, k / np.maximum(c, 1e-300))   # IRLS weights of eq. 9
-        w[~front] = 0.0
-        Aw = A * w[:, None, None]
-        L_det = np.einsum("nki,nkj->ij", Aw, A)
-        b_det = np.einsum("nki,nk->i", Aw, e)
+        if self._compiled:
+            L_det, b_det = _solver_kernel.normal_equations(e, c, front, P_v, P_c, np.ascontiguousarray(W, float),
+                                                           self.R_cv, self.camera.fx, self.camera.fy, k)
+        else:
+            D = point_pose_jacobian(P_v)         # d P_v / d ξ for T <- T·Exp(ξ)
+            Jp = self.camera.project_jacobian(np.where(front[:, None], P_c, [0, 0, 1.0]))
+            A = W @ (Jp @ (self.R_cv @ D))            # whitened d h / d ξ; e = W(z - h) so de/dξ = -A
+            w = np.where(c < k, 1.0, k / np.maximum(c, 1e-300))   # IRLS weights of eq. 9
+            w[~front] = 0.0
+            Aw = A * w[:, None, None]
+            L_det = np.einsum("nki,nkj->ij", Aw, A)
+            b_det = np.einsum("nki,nk->i", Aw, e)
         L, b = L_det.copy(), b_det.copy()
         if q is not None:
             Dq = _log_derivative(q)
