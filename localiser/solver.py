@@ -31,8 +31,9 @@ in the vehicle frame.  Because of that a covariance of ``T_place_vehicle`` is al
 The spec's ``T_k,p`` (place -> vehicle at time k) is ``inv(T_place_vehicle)``.
 
 Two back ends share the gating, the covariance (inverse of the Huber-weighted information at the
-solution) and the checks: a compact numpy LM on the 6-dof tangent (default: ~2.5 ms for 50
-detections, no allocations beyond a few (N,2,6) arrays) and a GTSAM factor graph
+solution) and the checks: a compact numpy LM on the 6-dof tangent (default; its per-detection
+residual and normal-equation loops compiled, :mod:`localiser._solver_kernel`, equal to the numpy
+array code to rounding) and a GTSAM factor graph
 (``GenericProjectionFactorCal3_S2`` with landmarks as variables held by their map priors, Huber noise
 models, ``LevenbergMarquardtOptimizer``; ~11 ms), kept as an independent reference that the tests
 compare against, and for the benchmark (``scenesig bench solver``).  The same code serves point features via
