@@ -13,13 +13,11 @@ solver's results on the demo's live runs.  The motion-prior term stays in the ca
 """
 from __future__ import annotations
 
-import importlib.util
-
 import numpy as np
 
-__all__ = ["AVAILABLE", "residuals", "normal_equations", "warm_up"]
+from surveys.compiled import AVAILABLE, lazy_njit
 
-AVAILABLE = importlib.util.find_spec("numba") is not None
+__all__ = ["AVAILABLE", "residuals", "normal_equations", "warm_up"]
 
 
 def _residuals(L, uv, W, R_pv, t_pv, R_cv, t_cv, fx, fy, cx, cy, min_depth, behind, huber_k):
@@ -85,29 +83,21 @@ def _normal_equations(e, c, front, P_v, P_c, W, R_cv, fx, fy, huber_k):
     return L, b
 
 
-_COMPILED: dict = {}
-
-
-def _compiled(name: str):
-    fn = _COMPILED.get(name)
-    if fn is None:
-        import numba
-
-        fn = _COMPILED[name] = numba.njit(cache=True, nogil=True)(globals()[name])
-    return fn
+_RESIDUALS = lazy_njit(_residuals)
+_NORMAL_EQUATIONS = lazy_njit(_normal_equations)
 
 
 def residuals(L, uv, W, R_pv, t_pv, R_cv, t_cv, fx, fy, cx, cy, min_depth, behind, huber_k):
     """``(e, c, front, P_v, P_c, cost)``: whitened residuals (n, 2) (zero behind the camera), their
     norms (``behind`` behind it), the front mask, the landmarks in the vehicle and camera frames and
     the detections' Huber cost ``1/2 Σ ρ(c)``."""
-    return _compiled("_residuals")(L, uv, W, R_pv, t_pv, R_cv, t_cv, float(fx), float(fy), float(cx),
-                                   float(cy), float(min_depth), float(behind), float(huber_k))
+    return _RESIDUALS(L, uv, W, R_pv, t_pv, R_cv, t_cv, float(fx), float(fy), float(cx), float(cy),
+                      float(min_depth), float(behind), float(huber_k))
 
 
 def normal_equations(e, c, front, P_v, P_c, W, R_cv, fx, fy, huber_k):
     """``(Λ, rhs)`` of the detections: ``Σ w A^T A`` and ``Σ w A^T e`` (IRLS Huber weights ``w``)."""
-    return _compiled("_normal_equations")(e, c, front, P_v, P_c, W, R_cv, float(fx), float(fy), float(huber_k))
+    return _NORMAL_EQUATIONS(e, c, front, P_v, P_c, W, R_cv, float(fx), float(fy), float(huber_k))
 
 
 def warm_up() -> None:

@@ -24,16 +24,11 @@ variable ``SCENESIG_NUMPY_HOG=1``, :mod:`signatures.hog` runs the numpy code.
 """
 from __future__ import annotations
 
-import importlib.util
-
 import numpy as np
 
-__all__ = ["AVAILABLE", "cell_histograms", "normalise", "warm_up"]
+from surveys.compiled import AVAILABLE, lazy_njit
 
-#: numba is installed (a dependency; without it :mod:`signatures.hog` runs the numpy code).  It is
-#: imported, and the loops loaded from its cache, on first use: commands that never describe an
-#: image do not pay the ~0.3 s import.
-AVAILABLE = importlib.util.find_spec("numba") is not None
+__all__ = ["AVAILABLE", "cell_histograms", "normalise", "warm_up"]
 
 _N_BINS = 18
 _SCALE = np.float32(_N_BINS / 360.0)
@@ -147,16 +142,8 @@ def _normalise(hist, insens, energy, clip, eps):
     return out
 
 
-_COMPILED: dict = {}
-
-
-def _compiled(name: str):
-    fn = _COMPILED.get(name)
-    if fn is None:
-        import numba
-
-        fn = _COMPILED[name] = numba.njit(cache=True, nogil=True)(globals()[name])
-    return fn
+_CELL_HISTOGRAMS = lazy_njit(_cell_histograms)
+_NORMALISE = lazy_njit(_normalise)
 
 
 def normalise(hist: np.ndarray, insens: np.ndarray, energy: np.ndarray, clip: float, eps: float) -> np.ndarray:
@@ -164,15 +151,15 @@ def normalise(hist: np.ndarray, insens: np.ndarray, energy: np.ndarray, clip: fl
     sums and those sums' squared norms ``energy`` (computed by the caller with ``np.einsum``, whose
     float32 sum order is numpy's own): the block normalisation of :func:`signatures.hog.fhog`, in the
     same float32 operations and order."""
-    return _compiled("_normalise")(np.ascontiguousarray(hist, np.float32), np.ascontiguousarray(insens, np.float32),
-                                   np.ascontiguousarray(energy, np.float32), np.float32(clip), np.float32(eps))
+    return _NORMALISE(np.ascontiguousarray(hist, np.float32), np.ascontiguousarray(insens, np.float32),
+                      np.ascontiguousarray(energy, np.float32), np.float32(clip), np.float32(eps))
 
 
 def cell_histograms(mag: np.ndarray, ang: np.ndarray, hc: int, wc: int, cell: int) -> np.ndarray:
     """(hc, wc, 18) float32 histograms from float32 gradient magnitude and angle (degrees) of an
     (hc*cell, wc*cell) image -- the compiled loops (numba required: check :data:`AVAILABLE`)."""
-    return _compiled("_cell_histograms")(np.ascontiguousarray(mag, np.float32),
-                                         np.ascontiguousarray(ang, np.float32), int(hc), int(wc), int(cell))
+    return _CELL_HISTOGRAMS(np.ascontiguousarray(mag, np.float32), np.ascontiguousarray(ang, np.float32),
+                            int(hc), int(wc), int(cell))
 
 
 def warm_up() -> None:

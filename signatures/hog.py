@@ -469,18 +469,27 @@ def resize_area_region(img: np.ndarray, size: tuple[int, int], rows: tuple[int, 
     return out
 
 
+def _level_pixels(img, size: tuple[int, int]):
+    """``(image, level)``: the float image of ``img`` (an image or :class:`ScaledImages`) and the whole
+    level of ``size`` where it is at hand (the image itself at its own size, or a prepared resize),
+    else None."""
+    if isinstance(img, ScaledImages):
+        return img.image, img.resized(size)
+    return img, (img if tuple(size) == img.shape[1::-1] else None)
+
+
 def _whole_level(img, size: tuple[int, int], cfg: dict) -> np.ndarray:
-    """FHOG features of the whole level of ``size`` (width, height) of an image or :class:`ScaledImages`."""
-    if not isinstance(img, ScaledImages):
-        lvl = img if tuple(size) == img.shape[1::-1] else cv2.resize(img, tuple(size), interpolation=_INTERP)
-        return fhog(lvl, int(cfg["cell"]), float(cfg["clip"]), bool(cfg["color"]))
-    feat = img.features(size, cfg)
+    """FHOG features of the whole level of ``size`` (width, height) of an image or :class:`ScaledImages`
+    (which keeps them for later searches of the same image)."""
+    scaled = isinstance(img, ScaledImages)
+    feat = img.features(size, cfg) if scaled else None
     if feat is None:
-        lvl = img.resized(size)
+        base, lvl = _level_pixels(img, size)
         if lvl is None:
-            lvl = cv2.resize(img.image, tuple(size), interpolation=_INTERP)
+            lvl = cv2.resize(base, tuple(size), interpolation=_INTERP)
         feat = fhog(lvl, int(cfg["cell"]), float(cfg["clip"]), bool(cfg["color"]))
-        img.keep(size, cfg, feat)
+        if scaled:
+            img.keep(size, cfg, feat)
     return feat
 
 
@@ -526,11 +535,11 @@ def _level_region(img, size: tuple[int, int], box, cfg: dict, full_fraction: flo
         out[e0:e1, g0:g1] = whole[e0:e1, g0:g1]
         return out, (e0, e1, g0, g1)
     rows, cols = (a0 * cell, a1 * cell), (b0 * cell, b1 * cell)
-    whole = img.resized(size) if isinstance(img, ScaledImages) else (img if (lw, lh) == img.shape[1::-1] else None)
+    base, whole = _level_pixels(img, size)
     if whole is not None:
         lvl = whole[rows[0]:rows[1], cols[0]:cols[1]]
     else:
-        lvl = resize_area_region(img.image if isinstance(img, ScaledImages) else img, (lw, lh), rows, cols)
+        lvl = resize_area_region(base, (lw, lh), rows, cols)
     f = fhog(lvl, cell, clip, color)
     out[e0:e1, g0:g1] = f[e0 - a0:e1 - a0, g0 - b0:g1 - b0]
     return out, (e0, e1, g0, g1)
