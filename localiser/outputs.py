@@ -32,9 +32,12 @@ __all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "FALSE_FIX_M", "reference_path", "ma
            "write_frames_csv", "read_frames_csv", "write_outputs", "detection_rates", "read_output_files",
            "read_localisation"]
 
-#: Columns of ``frames.csv``.
+#: Columns of ``frames.csv`` (the errors are NaN without truth; the bounds NaN without a pose).
 FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
-                  "distance_since_localisation")
+                  "distance_since_localisation", "lateral_bound_95_m", "longitudinal_bound_95_m",
+                  "heading_bound_95_deg")
+#: the columns an output folder written before the bounds existed has (still read)
+_FRAMES_REQUIRED = FRAMES_COLUMNS[:8]
 #: ``metrics.json`` entries that measure the machine rather than the result (they differ between runs).
 TIMING_KEYS = ("ms_per_detection", "ms_per_solve", "ms_per_odometry_update", "ms_per_retrieval", "realtime_factor",
                "wall_seconds")
@@ -72,63 +75,121 @@ def map_relative_truth(store: MapStore, truth_poses: np.ndarray) -> np.ndarray |
 
 
 def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: float | None = None):
-    """``metrics.json`` content and the evaluation behind it (per-frame errors).
+    """``metrics.json`` content and the evaluation behind it (per-frame errors, or NaN without truth).
 
-    Keys: ``method``, ``run``, ``conditions``; ``lateral_error_m`` and ``heading_error_deg``
-    (``{"median", "mean", "p95"}`` of absolute errors against the run's exact truth, lateral = across
-    the reference path through the map's places; :mod:`localiser.evaluation`); ``localised_fraction``,
-    ``failures`` (oracle resets), ``failures_per_km``, ``blind_fraction_over_20m``; where the map
-    records its places' truth (simulated maps) also ``lateral_error_map_m``, ``heading_error_map_deg``
-    (the same errors relative to the map, see :func:`map_relative_truth`) and
-    ``map_georeference_error_m`` (how far the map's places are from their truth); localising without
-    INS/GPS (:func:`_no_oracle_metrics`): ``oracle``, ``oracle_reads``, ``first_fix_m``,
-    ``relocalisations``, ``false_fixes``, ``relocalise_m`` (errors and coverage then count from the first
-    fix on); timings ``ms_per_detection``, ``ms_per_solve``, ``ms_per_odometry_update``,
-    ``ms_per_retrieval`` (global search only), ``realtime_factor`` (data
-    duration / wall time of the replay), ``wall_seconds``; bookkeeping ``mode``, ``every``,
-    ``distance_m``, ``duration_s``, ``frames``, ``frames_evaluated``, ``detector_frames``,
-    ``localisations``, ``truth_source``, ``map``, ``map_generation`` (lifelong updates), ``run_path``
-    (the run folder, for ``scenesig map update``); detection rates ``detections_per_frame_mean`` and
-    ``inliers_per_detection_mean`` (:func:`detection_rates`); ``frames_corrupt`` and ``corrupt_frames`` (frames
-    skipped: image truncated or corrupt); ``method_config`` (the method's settings); and in real-time mode
-    ``frames_dropped`` (stale frames dropped), ``frames_detected``, ``odometry_queue_max`` (most samples due at
-    once), ``odometry_coalesced`` (samples composed into a later one) and ``lag_max_s``.  Without ``truth.tum``
-    the errors are taken against ``groundtruth.tum``
-    (``truth_source``).
+    Two parts, so a localisation needs no truth (a vehicle localising has none).
+
+    **What the localiser knows** (:func:`localisation_metrics`, always): ``method``, ``run``,
+    ``conditions``, ``localised_fraction``, ``failures`` (oracle resets), ``failures_per_km``,
+    ``blind_fraction_over_20m``, ``distance_m`` (along the truth where there is one, else along the
+    odometry: :func:`odometry_distances`); localising without INS/GPS: ``oracle``, ``oracle_reads``,
+    ``first_fix_m``, ``relocalisations``, ``relocalise_m``; the times that let the evaluation run on its
+    own later (``reset_times``, ``first_fix_time``, ``relocalisation_times``); the uncertainty
+    ``lateral_bound_95_m_median`` (:mod:`localiser.uncertainty`); timings ``ms_per_detection``,
+    ``ms_per_solve``, ``ms_per_odometry_update``, ``ms_per_retrieval`` (global search only),
+    ``realtime_factor`` (data duration / wall time of the replay), ``wall_seconds``; bookkeeping
+    ``mode``, ``every``, ``duration_s``, ``frames``, ``detector_frames``, ``localisations``,
+    ``truth_source``, ``map``, ``map_id`` and ``map_generation`` (the map's identity and lifelong
+    generation, :mod:`mapping.identity`), ``run_path`` (the run folder, for ``scenesig map update``);
+    detection rates ``detections_per_frame_mean`` and ``inliers_per_detection_mean``
+    (:func:`detection_rates`); ``frames_corrupt`` and ``corrupt_frames`` (frames skipped: image truncated
+    or corrupt); ``method_config`` (the method's settings); and in real-time mode ``frames_dropped``,
+    ``frames_detected``, ``odometry_queue_max``, ``odometry_coalesced`` and ``lag_max_s``.
+
+    **The evaluation against truth** (:func:`truth_metrics`, only where the run has ``truth.tum``, else
+    ``groundtruth.tum``: ``truth_source``; ``"none"`` without either, and then none of these keys):
+    ``lateral_error_m`` and ``heading_error_deg`` (``{"median", "mean", "p95"}`` of absolute errors,
+    lateral = across the reference path through the map's places; :mod:`localiser.evaluation`),
+    ``frames_evaluated``, ``false_fixes``; where the map records its places' truth (simulated maps)
+    ``lateral_error_map_m``, ``heading_error_map_deg`` (relative to the map, see
+    :func:`map_relative_truth`) and ``map_georeference_error_m``; ``bound_coverage_95`` and
+    ``bound_coverage_95_all`` (:func:`bound_coverage`).  The same function runs on a finished output
+    folder: :func:`evaluate_folder` (``scenesig evaluate``).
     """
+    truth = run_truth(result.run)
+    metrics = localisation_metrics(result, store, None if truth is None else truth[:2])
+    if truth is None:
+        return metrics, _odometry_evaluation(result)
+    tm, ev = truth_metrics(result, store, *truth, max_path_distance_m=max_path_distance_m)
+    return merge_truth_metrics(metrics, tm), ev
+
+
+#: ``metrics.json`` keys that exist only with truth (:func:`truth_metrics`); dropped before a re-evaluation.
+TRUTH_KEYS = ("lateral_error_m", "heading_error_deg", "frames_evaluated", "false_fixes", "lateral_error_map_m",
+              "heading_error_map_deg", "map_georeference_error_m", "bound_coverage_95", "bound_coverage_95_all")
+#: keys whose value the truth refines (distances along the truth instead of the odometry)
+_DISTANCE_KEYS = ("localised_fraction", "failures_per_km", "blind_fraction_over_20m", "distance_m", "first_fix_m",
+                  "relocalise_m")
+
+
+def run_truth(run):
+    """``(times, poses, source)`` of the run's truth -- ``truth.tum``, else ``groundtruth.tum`` -- or None."""
+    if getattr(run, "truth_times", None) is not None:
+        return run.truth_times, run.truth_poses, "truth"
+    if getattr(run, "groundtruth_times", None) is not None:
+        return run.groundtruth_times, run.groundtruth_poses, "groundtruth"
+    return None
+
+
+def odometry_distances(run, times) -> np.ndarray:
+    """Cumulative distance (m) travelled along the run's odometry at ``times`` (the localiser's own
+    measure of distance, used for the coverage figures where there is no truth)."""
+    from surveys.geometry import interpolate_poses
+
+    from .evaluation import travelled
+
+    P = interpolate_poses(run.odometry_times, run.odometry_poses, np.clip(times, run.odometry_times[0],
+                                                                          run.odometry_times[-1]))
+    return travelled(np.asarray(P).reshape(-1, 4, 4)[:, :3, 3])
+
+
+def _odometry_evaluation(result):
+    """The :class:`EvaluationResult` without truth: distances along the odometry, errors NaN."""
+    from .evaluation import EvaluationResult, blind_distances
+
+    n = len(result.times)
+    dist = odometry_distances(result.run, result.times) if n else np.zeros(0)
+    return EvaluationResult({}, np.full(n, np.nan), np.full(n, np.nan),
+                            blind_distances(dist, np.asarray(result.localised, bool)), dist)
+
+
+def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> dict:
+    """The part of ``metrics.json`` that needs no truth (see :func:`compute_metrics`).  ``truth``
+    ``(times, poses)``, where given, only measures the distances (else the odometry does)."""
+    from .evaluation import coverage_metrics
+    from .uncertainty import bounds_from_result
+
+    from surveys.geometry import interpolate_poses
+
+    from .evaluation import travelled
+
     run = result.run
-    if run.truth_times is not None:
-        tt, tp, source = run.truth_times, run.truth_poses, "truth"
-    elif run.groundtruth_times is not None:
-        tt, tp, source = run.groundtruth_times, run.groundtruth_poses, "groundtruth"
-    else:
-        raise DataError(run.root or Path(run.name), "no truth.tum or groundtruth.tum to evaluate against")
-    ev = _evaluate_valid(result, tt, tp, store, max_path_distance_m)
-    m = ev.metrics
     tm = result.timings
-    map_errors = {}
-    tmap = map_relative_truth(store, tp) if source == "truth" else None
-    if tmap is not None:
-        evm = _evaluate_valid(result, tt, tmap, store, max_path_distance_m)
-        # the map's own error: its places against their truth
-        ids = sorted(store.places)
-        off = [np.linalg.norm(store.places[i].T_world_place[:2, 3] - np.asarray(store.places[i].extra["T_truth_place"])[:2, 3])
-               for i in ids]
-        map_errors = {"lateral_error_map_m": evm.metrics["lateral_error_m"],
-                      "heading_error_map_deg": evm.metrics["heading_error_deg"],
-                      "map_georeference_error_m": summary(off)}
+    n = len(result.times)
+    if truth is not None and n:
+        dist = travelled(interpolate_poses(truth[0], truth[1], result.times).reshape(-1, 4, 4)[:, :3, 3])
+    else:
+        dist = odometry_distances(run, result.times) if n else np.zeros(0)
+    cov = coverage_metrics(dist, result.localised, result.resets)
+    if not np.asarray(result.valid, bool).all():
+        # without INS/GPS the coverage counts from the first fix on (before it there is no pose)
+        v = np.asarray(result.valid, bool)
+        if v.sum() >= 2:
+            cov = coverage_metrics(dist[v], result.localised[v], result.resets[v])
+        else:
+            cov = {"localised_fraction": 0.0, "failures": int(result.failures), "failures_per_km": None,
+                   "blind_fraction_over_20m": None, "distance_m": float(dist[-1]) if n else 0.0}
+    bounds = bounds_from_result(result, store)
     metrics = {
         "method": result.method,
         "run": run.name,
         "conditions": list(run.conditions),
-        "lateral_error_m": m["lateral_error_m"],
-        "heading_error_deg": m["heading_error_deg"],
-        "localised_fraction": m["localised_fraction"],
+        "localised_fraction": cov["localised_fraction"],
         "failures": int(result.failures),
-        "failures_per_km": m["failures_per_km"],
-        "blind_fraction_over_20m": m["blind_fraction_over_20m"],
-        **_no_oracle_metrics(result, ev, tt, tp if tmap is None else tmap),
-        **map_errors,
+        "failures_per_km": cov["failures_per_km"],
+        "blind_fraction_over_20m": cov["blind_fraction_over_20m"],
+        **_oracle_metrics(result, dist),
+        "lateral_bound_95_m_median": _median(bounds["lateral_bound_95_m"][np.asarray(result.localised, bool)]),
         "ms_per_detection": tm.get("ms_per_detection"),
         "ms_per_solve": tm.get("ms_per_solve"),
         "ms_per_odometry_update": tm.get("ms_per_odometry_update"),
@@ -137,26 +198,105 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
         "wall_seconds": tm.get("wall_seconds"),
         "mode": result.mode,
         "every": result.every,
-        "distance_m": m["distance_m"],
+        "distance_m": cov["distance_m"],
         "duration_s": tm.get("duration_s"),
-        "frames": int(len(result.times)),
-        "frames_evaluated": m["frames_evaluated"],
+        "frames": int(n),
         "detector_frames": int(result.detector_ran.sum()),
         "localisations": int(result.localised.sum()),
         **detection_rates(result.detections[result.detector_ran], result.inliers[result.detector_ran]),
-        "truth_source": source,
+        "truth_source": "none",
         "map": str(store.root),
         # frames whose image failed strict decoding (truncated or corrupt): skipped, odometry went on
         "frames_corrupt": len(result.corrupt),
         "corrupt_frames": [run.frame_files[i] for i in result.corrupt] if run.frame_files else [],
         "method_config": result.method_config,
+        "map_id": store.map_id,
         "map_generation": int(store.generation),
         "run_path": str(Path(run.root).resolve()) if run.root is not None else None,
+        # what the evaluation needs besides frames.csv and trajectory.tum, so it can run on its own later
+        "reset_times": [float(t) for t in result.reset_times],
+        "first_fix_time": None if result.first_fix_time is None else float(result.first_fix_time),
+        "relocalisation_times": [[float(a), float(b)] for a, b in result.relocalisations],
     }
     for k in ("frames_dropped", "frames_detected", "odometry_queue_max", "odometry_coalesced", "lag_max_s"):
         if k in tm:
             metrics[k] = tm[k]
-    return metrics, ev
+    return metrics
+
+
+def _median(v) -> float | None:
+    v = np.asarray(v, float)
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size else None
+
+
+def truth_metrics(result, store: MapStore, truth_times, truth_poses, source: str,
+                  max_path_distance_m: float | None = None):
+    """The evaluation against truth (see :func:`compute_metrics`): ``(metrics, EvaluationResult)``.
+
+    ``result`` needs ``times``, ``poses``, ``valid``, ``localised``, ``resets``, ``failures``, ``oracle``,
+    ``first_fix_time``, ``relocalisations`` and ``lateral_bound_95_m`` (or ``covariances``) -- a
+    :class:`localiser.replay.ReplayResult`, or the same read back from an output folder.
+    """
+    from .uncertainty import bounds_from_result
+
+    ev = _evaluate_valid(result, truth_times, truth_poses, store, max_path_distance_m)
+    m = ev.metrics
+    out = {"lateral_error_m": m["lateral_error_m"], "heading_error_deg": m["heading_error_deg"],
+           "localised_fraction": m["localised_fraction"], "failures_per_km": m["failures_per_km"],
+           "blind_fraction_over_20m": m["blind_fraction_over_20m"], "distance_m": m["distance_m"],
+           "frames_evaluated": m["frames_evaluated"]}
+    tmap = map_relative_truth(store, truth_poses) if source == "truth" else None
+    lat_rel = ev.lateral_m           # lateral error relative to the map, else to the truth
+    if tmap is not None:
+        evm = _evaluate_valid(result, truth_times, tmap, store, max_path_distance_m)
+        lat_rel = evm.lateral_m
+        # the map's own error: its places against their truth
+        ids = sorted(store.places)
+        off = [np.linalg.norm(store.places[i].T_world_place[:2, 3] - np.asarray(store.places[i].extra["T_truth_place"])[:2, 3])
+               for i in ids]
+        out.update({"lateral_error_map_m": evm.metrics["lateral_error_m"],
+                    "heading_error_map_deg": evm.metrics["heading_error_deg"],
+                    "map_georeference_error_m": summary(off)})
+    out.update(_no_oracle_metrics(result, ev, truth_times, truth_poses if tmap is None else tmap))
+    bound = bounds_from_result(result, store)["lateral_bound_95_m"]
+    out.update(bound_coverage(lat_rel, bound, result.localised))
+    out["truth_source"] = source
+    return out, ev
+
+
+def bound_coverage(lateral_error, lateral_bound, localised) -> dict:
+    """``bound_coverage_95``: the share of localised frames (an accepted fix, an error and a bound) whose
+    absolute lateral error is within their ``lateral_bound_95_m``; ``bound_coverage_95_all``: the same
+    over every frame with a pose, fixes and dead reckoning alike.  None where no frame counts."""
+    e = np.abs(np.asarray(lateral_error, float))
+    b = np.asarray(lateral_bound, float)
+    ok = np.isfinite(e) & np.isfinite(b)
+    loc = ok & np.asarray(localised, bool)
+
+    def share(mask):
+        return clamp_fraction(float((e[mask] <= b[mask]).mean())) if mask.any() else None
+
+    return {"bound_coverage_95": share(loc), "bound_coverage_95_all": share(ok)}
+
+
+def clamp_fraction(x):
+    """A fraction (share of something) clamped to [0, 1] -- rounding in a ratio of sums can land a hair
+    outside; None stays None."""
+    return None if x is None else float(min(1.0, max(0.0, x)))
+
+
+def merge_truth_metrics(metrics: dict, truth: dict) -> dict:
+    """``metrics`` (:func:`localisation_metrics`, any earlier evaluation dropped) with ``truth``
+    (:func:`truth_metrics`): the errors right after ``conditions``, the refined distances in place."""
+    base = {k: v for k, v in metrics.items() if k not in TRUTH_KEYS}
+    head = {k: base.pop(k) for k in ("method", "run", "conditions") if k in base}
+    errors = {k: truth[k] for k in ("lateral_error_m", "heading_error_deg") if k in truth}
+    out = {**head, **errors, **base}
+    for k, v in truth.items():
+        if k not in errors:
+            out[k] = v
+    return out
 
 
 def detection_rates(detections, inliers) -> dict:
@@ -195,16 +335,10 @@ def _evaluate_valid(result: ReplayResult, truth_times, truth_poses, store: MapSt
     return EvaluationResult(metrics, lat, hd, blind, dist)
 
 
-def _no_oracle_metrics(result: ReplayResult, ev, truth_times, truth_poses) -> dict:
-    """``oracle``, ``oracle_reads``, ``first_fix_m``, ``relocalisations``, ``false_fixes``, ``relocalise_m``.
-
-    Distances are along the truth (``ev.distance_m``, from the first frame); a false fix is an accepted
-    localisation whose estimate is more than :data:`FALSE_FIX_M` from the truth (relative to the map
-    where the map records its places' truth, so the map's own georeferencing error does not count).
-    """
-    from surveys.geometry import interpolate_poses
-
-    s = np.asarray(ev.distance_m, float)
+def _oracle_metrics(result, dist) -> dict:
+    """``oracle``, ``oracle_reads``, ``first_fix_m``, ``relocalisations``, ``relocalise_m`` from the
+    cumulative distance ``dist`` at each frame (along the truth, else the odometry)."""
+    s = np.asarray(dist, float)
 
     def at(t):
         return float(np.interp(t, result.times, s)) if len(s) else 0.0
@@ -214,41 +348,60 @@ def _no_oracle_metrics(result: ReplayResult, ev, truth_times, truth_poses) -> di
         first = 0.0
     elif result.first_fix_time is not None:
         first = at(result.first_fix_time) - (float(s[0]) if len(s) else 0.0)
+    found = [at(b) - at(a) for a, b in result.relocalisations]
+    rel = summary(found)
+    return {"oracle": result.oracle, "oracle_reads": int(result.oracle_reads), "first_fix_m": first,
+            "relocalisations": len(found),
+            "relocalise_m": {"median": rel["median"], "max": float(max(found)) if found else None}}
+
+
+def _no_oracle_metrics(result, ev, truth_times, truth_poses) -> dict:
+    """``first_fix_m``, ``relocalise_m`` along the truth and ``false_fixes``.
+
+    Distances are along the truth (``ev.distance_m``, from the first frame); a false fix is an accepted
+    localisation whose estimate is more than :data:`FALSE_FIX_M` from the truth (relative to the map
+    where the map records its places' truth, so the map's own georeferencing error does not count).
+    """
+    from surveys.geometry import interpolate_poses
+
+    m = _oracle_metrics(result, ev.distance_m)
     loc = np.asarray(result.localised, bool) & np.asarray(result.valid, bool)
     false = 0
     if loc.any():
         truth = interpolate_poses(truth_times, truth_poses, result.times[loc]).reshape(-1, 4, 4)
         err = np.linalg.norm(result.poses[loc][:, :2, 3] - truth[:, :2, 3], axis=1)
         false = int((err > FALSE_FIX_M).sum())
-    found = [at(b) - at(a) for a, b in result.relocalisations]
-    rel = summary(found)
-    return {"oracle": result.oracle, "oracle_reads": int(result.oracle_reads), "first_fix_m": first,
-            "relocalisations": len(found), "false_fixes": false,
-            "relocalise_m": {"median": rel["median"], "max": float(max(found)) if found else None}}
+    return {"first_fix_m": m["first_fix_m"], "relocalise_m": m["relocalise_m"], "false_fixes": false}
 
 
 def _fmt(v: float) -> str:
     return "nan" if not np.isfinite(v) else f"{v:.6f}"
 
 
-def write_frames_csv(path: Path, result: ReplayResult, ev) -> None:
+def write_frames_csv(path: Path, result: ReplayResult, ev, bounds: dict | None = None) -> None:
+    """``frames.csv`` (:data:`FRAMES_COLUMNS`): per frame the replay's record, the errors of ``ev`` (NaN
+    without truth) and the 95 % bounds (:mod:`localiser.uncertainty`)."""
+    n = len(result.times)
+    b = bounds or {}
+    cols = [b.get(c, np.full(n, np.nan)) for c in FRAMES_COLUMNS[8:]]
     lines = [",".join(FRAMES_COLUMNS)]
     for i, t in enumerate(result.times):
         lines.append(",".join([f"{t:.6f}", str(int(result.places[i])), str(int(result.detections[i])),
                                str(int(result.inliers[i])), str(int(result.localised[i])),
                                _fmt(ev.lateral_m[i]), _fmt(ev.heading_deg[i]),
-                               _fmt(result.distance_since_localisation[i])]))
+                               _fmt(result.distance_since_localisation[i]), *(_fmt(c[i]) for c in cols)]))
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def read_frames_csv(path) -> dict:
     """``frames.csv`` as ``{column: (N,) float array}``; a :class:`DataError` naming the file and line when
-    a column of :data:`FRAMES_COLUMNS` is missing or a value is not a number."""
+    a column of :data:`FRAMES_COLUMNS` is missing or a value is not a number (the bound columns may be
+    missing: outputs written before they existed)."""
     path = Path(path)
     try:
         with open(path, newline="", encoding="utf-8") as fh:
             reader = csv.reader(fh)
-            header = csv_header(reader, path, FRAMES_COLUMNS)
+            header = csv_header(reader, path, _FRAMES_REQUIRED)
             cols = {h: [] for h in header}
             for ln, row in enumerate(reader, start=2):
                 if not row:
@@ -267,13 +420,24 @@ def read_frames_csv(path) -> dict:
 
 def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_m: float | None = None,
                   figure: bool = True) -> dict:
-    """Write trajectory.tum, frames.csv, metrics.json (and trajectory.png) into ``out``; return the metrics."""
+    """Write trajectory.tum, covariances.csv, frames.csv, metrics.json (and trajectory.png) into ``out``;
+    return the metrics.
+
+    What the localiser produced is written whether or not the run has truth -- the trajectory first,
+    and it never depends on the truth; where there is truth the evaluation (:func:`compute_metrics`)
+    fills the errors in.
+    """
+    from .uncertainty import bounds_from_result, write_covariances_csv
+
     out = Path(out)
     make_dirs(out)
-    metrics, ev = compute_metrics(result, store, max_path_distance_m)
     # without INS/GPS there is no pose before the first fix: those frames have none
-    write_tum(out / "trajectory.tum", result.times[result.valid], result.poses[result.valid])
-    write_frames_csv(out / "frames.csv", result, ev)
+    v = np.asarray(result.valid, bool)
+    write_tum(out / "trajectory.tum", result.times[v], result.poses[v])
+    bounds = bounds_from_result(result, store)
+    write_covariances_csv(out / "covariances.csv", result.times[v], result.planar_covariances[v])
+    metrics, ev = compute_metrics(result, store, max_path_distance_m)
+    write_frames_csv(out / "frames.csv", result, ev, bounds)
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, allow_nan=False) + "\n")
     if figure:
         from .plots import plot_trajectory

@@ -45,10 +45,14 @@ def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metri
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    lat = metrics["lateral_error_m"]["median"]
-    hd = metrics["heading_error_deg"]["median"]
-    ax.set_title(f"{run.name} [{', '.join(run.conditions)}] -- {result.method}: lateral median "
-                 f"{'-' if lat is None else f'{lat:.2f} m'}, heading median {'-' if hd is None else f'{hd:.2f}°'}, "
+    lat = (metrics.get("lateral_error_m") or {}).get("median")
+    hd = (metrics.get("heading_error_deg") or {}).get("median")
+    if metrics.get("truth_source", "none") == "none":
+        errors = "no truth"
+    else:
+        errors = (f"lateral median {'-' if lat is None else f'{lat:.2f} m'}, heading median "
+                  f"{'-' if hd is None else f'{hd:.2f}°'}")
+    ax.set_title(f"{run.name} [{', '.join(run.conditions)}] -- {result.method}: {errors}, "
                  f"failures {result.failures}"
                  + (f"\nrelative to the map: lateral median {metrics['lateral_error_map_m']['median']:.2f} m, heading "
                     f"median {metrics['heading_error_map_deg']['median']:.2f}° (map georeference error "
@@ -62,7 +66,12 @@ def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metri
         edges = np.flatnonzero(np.diff(np.concatenate([[0], within.astype(int), [0]])))
         for a, b in zip(edges[::2], edges[1::2]):
             bx.axvspan(s[a], s[min(b, len(s) - 1)], color="tab:green", alpha=0.15, lw=0)
-    bx.plot(s, ev.lateral_m, color="tab:blue", lw=1, label="lateral error")
+    bound = getattr(result, "bounds", None)
+    if bound is not None and np.isfinite(bound["lateral_bound_95_m"]).any():
+        lb = bound["lateral_bound_95_m"]
+        bx.fill_between(s, -lb, lb, color="tab:purple", alpha=0.12, lw=0, label="95 % lateral bound")
+    if np.isfinite(ev.lateral_m).any():
+        bx.plot(s, ev.lateral_m, color="tab:blue", lw=1, label="lateral error")
     tmap = map_relative_truth(store, run.truth_poses) if run.truth_times is not None else None
     if tmap is not None:
         tm = interpolate_poses(run.truth_times, tmap, result.times).reshape(-1, 4, 4)
@@ -81,9 +90,10 @@ def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metri
     bx.axhline(0, color="0.5", lw=0.5)
     if result.oracle != "ins" and result.first_fix_time is not None:
         bx.axvline(float(np.interp(result.first_fix_time, result.times, s)), color="tab:green", lw=1, ls=":")
-    bx.set_xlabel(f"distance travelled (m)  [green: within 10 m of a localisation; red: {what}"
+    along = "truth" if metrics.get("truth_source", "none") != "none" else "odometry"
+    bx.set_xlabel(f"distance travelled along the {along} (m)  [green: within 10 m of a localisation; red: {what}"
                   + ("; dotted: first fix from the map" if result.oracle != "ins" else "") + "]")
-    bx.set_ylabel("lateral error (m)")
+    bx.set_ylabel("lateral error (m)" if along == "truth" else "lateral bound (m)")
     bx.legend(loc="best", fontsize=8)
     fig.tight_layout()
     with atomic_path(path) as tmp:

@@ -125,6 +125,7 @@ class PoseGraph:
         self.config = cfg
         self.monitor = DeadReckoningMonitor(cfg["failure_distance_m"])
         self._smoother = None
+        self._marginals: dict = {}
         self._next_index = 0
         self.n_updates = 0
         self.update_seconds = 0.0   # total time spent in smoother updates (for ms per update)
@@ -228,6 +229,7 @@ class PoseGraph:
             self._smoother.update()
         self.update_seconds += time.perf_counter() - t0
         self.n_updates += 1
+        self._marginals = {}              # keyframe marginals change with every update
         self._kf_pose = self._smoother.calculateEstimatePose3(self._kf_keys[-1]).matrix()
 
     def _prune(self) -> None:
@@ -399,9 +401,32 @@ class PoseGraph:
         prior ``P_x`` for the solver.
         """
         self._require()
-        C = self._smoother.marginalCovariance(self._kf_keys[-1])
+        C = self._marginal(self._kf_keys[-1])
         Ad = _adjoint(invert(self._acc_T))
         return Ad @ C @ Ad.T + self._acc_cov
+
+    def _marginal(self, key) -> np.ndarray:
+        """A keyframe's marginal covariance, computed once per smoother update (the solver's prior and
+        every frame's uncertainty ask for it between two updates)."""
+        C = self._marginals.get(key)
+        if C is None:
+            C = self._marginals[key] = self._smoother.marginalCovariance(key)
+        return C
+
+    def covariance_at(self, t: float | None = None) -> np.ndarray:
+        """6x6 marginal covariance of the pose at time ``t`` (vehicle frame, GTSAM order: rotation, then
+        translation), the counterpart of :meth:`estimate`: the nearest keyframe at or before ``t``
+        (its marginal in the smoothed window) propagated through the odometry since."""
+        self._require()
+        if t is None or t >= self.latest_time:
+            return self.covariance()
+        t = float(t)
+        if t < self._kf_times[0]:
+            raise ValueError(f"t={t} is before the window (oldest keyframe at {self._kf_times[0]})")
+        i = bisect.bisect_right(self._kf_times, t) - 1
+        T, C_odo = self._odometry(self._kf_times[i], t)
+        Ad = _adjoint(invert(T))
+        return Ad @ self._marginal(self._kf_keys[i]) @ Ad.T + C_odo
 
     def keyframes(self) -> tuple[np.ndarray, np.ndarray]:
         """Times (K,) and smoothed poses (K,4,4) of the keyframes in the window."""

@@ -118,6 +118,8 @@ class ReplayResult:
     valid: np.ndarray | None = None   # (N,) bool: the localiser had a world pose at this frame
     first_fix_time: float | None = None      # oracle "none": the first pose found from the map
     relocalisations: list = field(default_factory=list)  # oracle "none": (t_lost, t_found) pairs
+    covariances: np.ndarray | None = None    # (N,6,6) marginal covariance of each frame's pose (vehicle frame,
+                                             # GTSAM order: rotation, translation); NaN without a pose
 
     def __post_init__(self):
         if self.valid is None:
@@ -193,6 +195,7 @@ class _Recorder:
         self.detector_ran = np.zeros(n, dtype=bool)
         self.distance = np.zeros(n)
         self.valid = np.zeros(n, dtype=bool)
+        self.covariances = np.full((n, 6, 6), np.nan)   # the pose graph's marginal at each frame
         self.reasons: list = [None] * n
         self.ms_detect: list[float] = []
         self.ms_solve: list[float] = []
@@ -214,8 +217,10 @@ class _Recorder:
                 self.distance[i] = loc.distance_since_localisation
             return
         T = loc.estimate(t)
+        C = loc.covariance(t)
         with self.lock:
             self.poses[i] = T
+            self.covariances[i] = C
             self.valid[i] = True
             self.distance[i] = loc.distance_since_localisation
             if self.places[i] < 0:
@@ -479,10 +484,11 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     if not speed > 0:
         raise ValueError(f"speed must be > 0, got {speed}")
     _check_compatible(store, run)
+    oracle_pose = _oracle(run) if oracle == "ins" else None     # a missing INS/GPS stops us before replaying
     own = isinstance(method, str)
     if own:
         method = make_method(method, store, run.camera, run.T_vehicle_camera, cfg["method"] or None)
-    loc = Localiser(store, _oracle(run) if oracle == "ins" else None, cfg["localiser"] or None)
+    loc = Localiser(store, oracle_pose, cfg["localiser"] or None)
     reloc = None
     if oracle == "none":
         from .relocalise import Relocaliser
@@ -522,7 +528,8 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
                         rec.times, rec.poses, rec.places, rec.detections, rec.inliers, rec.localised, resets,
                         rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times),
                         dict(sorted(rec.corrupt.items())), timings, _json_safe(method.method_config()),
-                        oracle, loc.oracle_reads, rec.valid.copy(), loc.first_fix_time, list(loc.relocalisations))
+                        oracle, loc.oracle_reads, rec.valid.copy(), loc.first_fix_time, list(loc.relocalisations),
+                        rec.covariances)
 
 
 def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
@@ -558,6 +565,8 @@ def localise(map_root, run_root, out, method: str = "signatures", every: int = 4
     oracle = oracle or cfg["oracle"]
     blind = oracle == "none"
     run = read_run(run_root, skip=("groundtruth", "gps", "truth") if blind else ())
+    if not blind:
+        _oracle(run)          # no INS/GPS: say so before anything else (DataError naming groundtruth.tum)
     _warn_weak_places(store, run)
     result = replay(store, run, method, every=every, realtime=realtime, speed=speed, config=config,
                     progress=progress, oracle=oracle)

@@ -52,6 +52,7 @@ from surveys.io import append_line, atomic_write_bytes, fsync_dir, make_dirs, re
 
 from surveys.geometry import Camera, yaw_of
 
+from .identity import map_id_of, new_map_id
 from .codec import (FORMAT_NAME, FORMAT_VERSION, READABLE_VERSIONS, PlaceData, decode_keyframe, decode_place,  # noqa: F401
                     encode_keyframe, encode_place)
 
@@ -161,6 +162,7 @@ class MapWriter:
                         "score_tol": self.score_tol if score_fn is not None else None},
         }
         make_dirs(self.root / PLACES_DIR)
+        self.map_id: str | None = None        # set by _resume: the identity of the map being written
         self._done: dict[int, dict] = {}
         self._remove_stale_temp_files()
         if overwrite:
@@ -201,17 +203,21 @@ class MapWriter:
                                           f"overwrite=True to rebuild it")
             records = [{"index": p["index"], "file": p["file"], "sha256": p["sha256"], "bytes": p["bytes"],
                         "signatures": p.get("signatures", 0)} for p in doc.get("places", [])]
+            self.map_id = map_id_of(doc)
         elif journal.exists():
             header, records = _read_journal(journal)
             bad = self._header_mismatch(header)
             if bad:
                 raise DataError(journal, f"an interrupted build here used a different {bad}; resume it with "
                                          f"the same settings, or use overwrite=True to start again")
+            self.map_id = header.get("map_id") if isinstance(header.get("map_id"), str) else None
+        # a new map gets its identity now; a resumed build keeps the one its journal recorded
+        self.map_id = self.map_id or new_map_id()
         for r in records:
             if self._verified(r):
                 self._done[int(r["index"])] = r
         # Start a fresh, compact journal holding only the verified places.
-        lines = [_canonical({"header": self.header})] + [_canonical(r) for _, r in sorted(self._done.items())]
+        lines = [_canonical({"header": {**self.header, "map_id": self.map_id}})] + [_canonical(r) for _, r in sorted(self._done.items())]
         atomic_write_bytes(journal, ("\n".join(lines) + "\n").encode())
 
     def discard(self) -> None:
@@ -288,7 +294,7 @@ class MapWriter:
             places.append({"index": idx, "T_world_place": _pose_list(pose), "neighbours": nb,
                            "file": r["file"], "sha256": r["sha256"], "bytes": r["bytes"],
                            "signatures": r["signatures"], "extra": json.loads(_canonical(ext))})
-        doc = {**self.header, "places": places}
+        doc = {**self.header, "map_id": self.map_id, "places": places}
         path = write_manifest(self.root, doc)
         (self.root / JOURNAL).unlink(missing_ok=True)
         fsync_dir(self.root)
@@ -370,6 +376,9 @@ class MapStore:
         scenesig version that built it.
     places : dict of int -> PlaceMeta
         In index order.
+    map_id : str
+        The map's identity (:mod:`mapping.identity`): drawn when it was built, kept by updates; derived from
+        the manifest for a map built before identities existed (``map_id_derived`` is then True).
     generation : int
         0 for a built map, +1 per lifelong update (:mod:`mapping.update`).
     history : list of dict
@@ -392,6 +401,8 @@ class MapStore:
         self._set_doc(doc)
 
     def _set_doc(self, doc: dict) -> None:
+        self.map_id = map_id_of(doc)
+        self.map_id_derived = not isinstance(doc.get("map_id"), str)
         self.generation = int(doc.get("generation", 0))
         self.history = list(doc.get("history", []))
         self.camera = Camera.from_dict(doc["camera"])
@@ -577,6 +588,8 @@ def _validate_manifest(doc, path: Path) -> None:
         raise DataError(path, "T_vehicle_camera must be a finite 4x4 matrix")
     if not isinstance(doc["params"], dict):
         raise DataError(path, "'params' must be an object")
+    if "map_id" in doc and not (isinstance(doc["map_id"], str) and doc["map_id"]):
+        raise DataError(path, f"bad 'map_id' {str(doc['map_id'])[:60]!r}: must be a non-empty string")
     if not isinstance(doc["places"], list):
         raise DataError(path, "'places' must be a list")
     seen = set()

@@ -57,6 +57,7 @@ def map_contents(root: Path) -> dict:
     root = Path(root)
     out = {f"places/{p.name}": p.read_bytes() for p in sorted((root / "places").glob("*"))}
     out["manifest.json"] = json.loads((root / "manifest.json").read_text())
+    out["manifest.json"].pop("map_id")      # every build draws its own identity (mapping.identity)
     summary = json.loads((root / "build_summary.json").read_text())
     out["build_summary.json"] = {k: v for k, v in summary.items() if k not in ("seconds", "seconds_per_place_mean")}
     return out

@@ -39,7 +39,8 @@ def test_outputs(world, tmp_path):
     res = replay(store, run, TruthMethod(run), every=4)
     m = write_outputs(res, store, tmp_path / "out")
     out = tmp_path / "out"
-    assert sorted(p.name for p in out.iterdir()) == ["frames.csv", "metrics.json", "trajectory.png", "trajectory.tum"]
+    assert sorted(p.name for p in out.iterdir()) == ["covariances.csv", "frames.csv", "metrics.json", "trajectory.png",
+                                                     "trajectory.tum"]
     traj = file_interface.read_tum_trajectory_file(str(out / "trajectory.tum"))
     assert traj.num_poses == len(run)
     np.testing.assert_allclose(traj.timestamps, run.frame_times, atol=1e-6)

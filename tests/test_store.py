@@ -155,7 +155,10 @@ def test_floats_are_stored_small_only_within_tolerance(tmp_path):
 def test_place_files_are_deterministic_zip(tmp_path):
     a = folder_bytes(build(tmp_path / "a"))
     b = folder_bytes(build(tmp_path / "b"))
-    assert a == b and "manifest.json" in a and "journal.jsonl" not in a
+    # two builds are two maps: the same bytes but for the identity each drew (mapping.identity)
+    ma, mb = json.loads(a.pop("manifest.json")), json.loads(b.pop("manifest.json"))
+    assert ma.pop("map_id") != mb.pop("map_id") and ma == mb
+    assert a == b and "journal.jsonl" not in a
     with zipfile.ZipFile(tmp_path / "a" / "places" / "place_0003.npz") as zf:
         names = zf.namelist()
         assert names == sorted(names)
@@ -374,3 +377,31 @@ def test_keyframe_helpers():
     assert data == encode_keyframe(img)  # deterministic
     assert len(data) < 30_000
     assert decode_keyframe(None) is None
+
+
+def test_map_identity_drawn_at_build_kept_on_resume_and_derived_for_old_maps(tmp_path):
+    """A map's identity is drawn when its build starts, kept by a resumed build (journal), and for a map
+    written before identities existed derived from its manifest, the same for every reader."""
+    from mapping.identity import derived_map_id
+
+    w = MapWriter(tmp_path / "m", CAM, T_VC, PARAMS)
+    w.write_place(0, make_place(0))
+    first = w.map_id
+    again = MapWriter(tmp_path / "m", CAM, T_VC, PARAMS)        # an interrupted build, resumed
+    assert again.map_id == first
+    again.write_place(1, make_place(1))
+    again.finalise([{"index": i, "T_world_place": np.eye(4), "neighbours": []} for i in (0, 1)])
+    store = MapStore.open(tmp_path / "m")
+    assert store.map_id == first and not store.map_id_derived
+    other = MapWriter(tmp_path / "n", CAM, T_VC, PARAMS)
+    assert other.map_id != first
+    # an old map: no map_id in its manifest -> derived deterministically, stable across readers
+    doc = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    del doc["map_id"]
+    (tmp_path / "m" / "manifest.json").write_text(json.dumps(doc))
+    old = MapStore.open(tmp_path / "m")
+    assert old.map_id_derived and old.map_id == derived_map_id(doc) == MapStore.open(tmp_path / "m").map_id
+    doc["map_id"] = 7
+    (tmp_path / "m" / "manifest.json").write_text(json.dumps(doc))
+    with pytest.raises(DataError, match="map_id"):
+        MapStore.open(tmp_path / "m")

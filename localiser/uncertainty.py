@@ -1,0 +1,153 @@
+"""Every frame's uncertainty: 95 % bounds from the pose graph's marginals, and ``covariances.csv``.
+
+The localiser's pose graph (:mod:`localiser.posegraph`) holds, at every frame, the marginal covariance of
+the vehicle pose given the odometry and the map's localisations (the Gaussian approximation GTSAM's
+smoother keeps; McManus et al. 2015, §3.3.2).  This module turns it into what a user of the
+localisation reads:
+
+* :func:`planar_covariances` -- the covariance of the planar pose ``(x, y, yaw)`` in the world (map)
+  frame, the three quantities a ground vehicle localises: GTSAM's ``Pose3`` marginal is in the vehicle
+  frame, rotation first; a translation perturbation ``δt`` moves the world position by ``R δt`` and a
+  rotation perturbation about the vehicle's z axis is, on a near-level road, a change of yaw.
+* :func:`frame_bounds` -- per frame, ``lateral_bound_95_m`` (across the reference path through the map's
+  places, the direction the evaluation's lateral error is measured in, :mod:`localiser.evaluation`),
+  ``longitudinal_bound_95_m`` (along it) and ``heading_bound_95_deg``: ``z · k · σ`` with
+  ``z = 1.96`` (the two-sided 95 % quantile of a normal error) and ``k`` the one inflation factor
+  :data:`INFLATION` (see below).  The bounds are relative to the map: the marginal says how well the
+  localiser knows its pose in the map's frame; the map's own georeferencing error is not in it.
+* ``covariances.csv`` beside ``trajectory.tum`` (:func:`write_covariances_csv`): one row per pose of
+  the trajectory, ``time, xx, xy, xyaw, yy, yyaw, yawyaw`` -- the upper triangle of the planar 3x3
+  covariance in the world frame, in m², m·rad and rad², already inflated by ``k²`` (so it is the
+  covariance the bounds come from).  The TUM file itself stays plain (evo reads it).
+
+**Calibration** (``docs/integrity.md``, "Uncertainty").  The raw marginal is a model's statement: the
+odometry noise model, the solver's information and the Huber prior all shape it.  Whether it is
+honest is measured on data that is not reported: :data:`INFLATION` was chosen as the smallest
+factor whose lateral bounds cover 95 % of the localised frames of calibration localisations
+(the demo world's runs in conditions the demo does not report, ``--oracle none``); the demo's live runs
+are the reported hold-out set.
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from surveys.errors import DataError
+from surveys.io import atomic_write_text
+
+__all__ = ["Z_95", "INFLATION", "BOUND_COLUMNS", "COVARIANCE_COLUMNS", "planar_covariances", "frame_bounds",
+           "bounds_from_result", "write_covariances_csv", "read_covariances_csv"]
+
+#: two-sided 95 % quantile of a normal distribution
+Z_95 = 1.959963984540054
+#: the inflation of the marginal's standard deviations (see the module docstring, "Calibration")
+INFLATION = 1.0
+#: the per-frame bounds ``frames.csv`` carries
+BOUND_COLUMNS = ("lateral_bound_95_m", "longitudinal_bound_95_m", "heading_bound_95_deg")
+#: ``covariances.csv``'s columns: time, then the upper triangle of the planar (x, y, yaw) covariance
+COVARIANCE_COLUMNS = ("time", "xx", "xy", "xyaw", "yy", "yyaw", "yawyaw")
+
+
+def planar_covariances(poses: np.ndarray, covariances: np.ndarray, inflation: float = INFLATION) -> np.ndarray:
+    """(N,3,3) covariances of ``(x, y, yaw)`` in the world frame from (N,6,6) ``Pose3`` marginals.
+
+    Parameters
+    ----------
+    poses : (N,4,4) ``T_world_vehicle``.
+    covariances : (N,6,6) marginals in the vehicle frame, GTSAM order ``(rx, ry, rz, tx, ty, tz)``.
+    inflation : factor on the standard deviations (``inflation²`` on the covariance).
+    """
+    T = np.asarray(poses, float).reshape(-1, 4, 4)
+    C = np.asarray(covariances, float).reshape(-1, 6, 6)
+    R = T[:, :3, :3]
+    # J maps the vehicle-frame perturbation (rot, trans) to (x, y, yaw) in the world
+    J = np.zeros((len(T), 3, 6))
+    J[:, :2, 3:] = R[:, :2, :]
+    J[:, 2, :3] = R[:, 2, :]             # world z component of the rotation vector: yaw
+    P = J @ C @ np.transpose(J, (0, 2, 1))
+    return 0.5 * (P + np.transpose(P, (0, 2, 1))) * float(inflation) ** 2
+
+
+def frame_bounds(poses: np.ndarray, planar: np.ndarray, path) -> dict:
+    """``{column: (N,)}`` of :data:`BOUND_COLUMNS` from (N,3,3) planar covariances (already inflated).
+
+    ``path`` is the reference path (:class:`localiser.evaluation.ReferencePath`): lateral is along its
+    left normal at the point nearest each estimate, longitudinal along its tangent.  NaN where a
+    frame has no pose.
+    """
+    T = np.asarray(poses, float).reshape(-1, 4, 4)
+    P = np.asarray(planar, float).reshape(-1, 3, 3)
+    n = len(T)
+    out = {c: np.full(n, np.nan) for c in BOUND_COLUMNS}
+    ok = np.isfinite(T[:, :2, 3]).all(axis=1) & np.isfinite(P.reshape(n, -1)).all(axis=1)
+    if not ok.any():
+        return out
+    _, left, _ = path.project(T[ok, :3, 3])
+    tangent = np.stack([left[:, 1], -left[:, 0]], axis=1)
+    Pxy = P[ok, :2, :2]
+    var_lat = np.einsum("ni,nij,nj->n", left, Pxy, left)
+    var_lon = np.einsum("ni,nij,nj->n", tangent, Pxy, tangent)
+    out["lateral_bound_95_m"][ok] = Z_95 * np.sqrt(np.maximum(var_lat, 0.0))
+    out["longitudinal_bound_95_m"][ok] = Z_95 * np.sqrt(np.maximum(var_lon, 0.0))
+    out["heading_bound_95_deg"][ok] = np.degrees(Z_95 * np.sqrt(np.maximum(P[ok, 2, 2], 0.0)))
+    return out
+
+
+def bounds_from_result(result, store) -> dict:
+    """The bounds of a replay (computed once and kept on ``result``), or those an output folder recorded
+    (``result.bounds``); NaN throughout where neither is known."""
+    b = getattr(result, "bounds", None)
+    if b is not None:
+        return b
+    from .outputs import reference_path
+
+    n = len(result.times)
+    C = getattr(result, "covariances", None)
+    if C is None:
+        b = {c: np.full(n, np.nan) for c in BOUND_COLUMNS}
+        planar = np.full((n, 3, 3), np.nan)
+    else:
+        planar = planar_covariances(result.poses, C)
+        b = frame_bounds(result.poses, planar, reference_path(store))
+    result.bounds, result.planar_covariances = b, planar
+    return b
+
+
+def write_covariances_csv(path, times, planar) -> None:
+    """``covariances.csv``: :data:`COVARIANCE_COLUMNS`, one row per (time, planar 3x3 covariance)."""
+    P = np.asarray(planar, float).reshape(-1, 3, 3)
+    iu = np.triu_indices(3)
+    lines = [",".join(COVARIANCE_COLUMNS)]
+    for t, c in zip(np.asarray(times, float), P):
+        lines.append(",".join([f"{t:.9f}"] + [repr(float(v)) for v in c[iu]]))
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_covariances_csv(path) -> tuple[np.ndarray, np.ndarray]:
+    """``(times (N,), covariances (N,3,3))`` of a ``covariances.csv``; DataError naming the file and line."""
+    path = Path(path)
+    times, rows = [], []
+    with open(path, newline="", encoding="utf-8") as fh:
+        reader = csv.reader(fh)
+        header = [h.strip() for h in next(reader, [])]
+        if tuple(header) != COVARIANCE_COLUMNS:
+            raise DataError(path, f"header must be {','.join(COVARIANCE_COLUMNS)}, got {','.join(header)}", line=1)
+        for ln, row in enumerate(reader, start=2):
+            if not row:
+                continue
+            try:
+                vals = [float(v) for v in row]
+            except ValueError:
+                raise DataError(path, "not a number", line=ln) from None
+            if len(vals) != len(COVARIANCE_COLUMNS) or not np.all(np.isfinite(vals)):
+                raise DataError(path, f"expected {len(COVARIANCE_COLUMNS)} finite numbers", line=ln)
+            times.append(vals[0])
+            rows.append(vals[1:])
+    P = np.zeros((len(rows), 3, 3))
+    iu = np.triu_indices(3)
+    for k, r in enumerate(rows):
+        P[k][iu] = r
+        P[k] = P[k] + np.triu(P[k], 1).T
+    return np.asarray(times), P
