@@ -515,3 +515,84 @@ def read_localisation(folder, search=()):
                               sort_keys=True).encode()
         h.update(hashlib.sha256(data).digest())
     return Localisation(folder, metrics, times, np.asarray(poses).reshape(-1, 4, 4), frames, run, h.hexdigest())
+
+
+class _Track:
+    """A localisation read back from its output folder, shaped as :func:`truth_metrics` and
+    :func:`localiser.plots.plot_trajectory` read a :class:`localiser.replay.ReplayResult`."""
+
+    def __init__(self, metrics: dict, frames: dict, times, poses, run):
+        n = len(times)
+        self.run = run
+        self.method = metrics["method"]
+        self.times = np.asarray(times, float)
+        self.poses = np.asarray(poses, float).reshape(-1, 4, 4)
+        self.valid = np.isfinite(self.poses[:, :3, 3]).all(axis=1)
+        self.localised = np.asarray(frames["localised"]) > 0
+        self.places = frames["place"].astype(int)
+        self.detections = frames["detections"].astype(int)
+        self.inliers = frames["inliers"].astype(int)
+        self.distance_since_localisation = frames["distance_since_localisation"]
+        self.resets = np.zeros(n, dtype=bool)
+        for tr in metrics.get("reset_times") or []:     # as the replay marks them
+            self.resets[min(int(np.searchsorted(self.times, tr, side="right")), n - 1)] = True
+        self.failures = int(metrics.get("failures", 0))
+        self.oracle = metrics.get("oracle", "ins")
+        self.oracle_reads = int(metrics.get("oracle_reads", 0))
+        self.first_fix_time = metrics.get("first_fix_time")
+        self.relocalisations = [tuple(p) for p in metrics.get("relocalisation_times") or []]
+        self.bounds = {c: frames.get(c, np.full(n, np.nan)) for c in FRAMES_COLUMNS[8:]}
+
+
+def evaluate_folder(folder, truth=None, map_root=None, max_path_distance_m: float | None = None,
+                    figure: bool = True) -> dict:
+    """Evaluate a finished ``scenesig localise`` output against truth (``scenesig evaluate``): fill in
+    ``metrics.json``'s error keys (:func:`truth_metrics`; an earlier evaluation is replaced) and
+    ``frames.csv``'s error columns, redraw ``trajectory.png``; return the metrics.
+
+    Parameters
+    ----------
+    folder : the output folder (``trajectory.tum``, ``frames.csv``, ``metrics.json``).
+    truth : a TUM file of the run's exact truth; default: the run's ``truth.tum`` (else
+        ``groundtruth.tum``) in the run folder ``metrics.json`` names (``run_path``).
+    map_root : the map (default: ``metrics.json``'s ``map``); it must be the map the localisation was
+        made against (``map_id``).
+    """
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    folder = Path(folder)
+    mpath = folder / "metrics.json"
+    metrics, frames, times, poses = read_output_files(folder)
+    if map_root is None and not metrics.get("map"):
+        raise DataError(mpath, "names no map: give the map")
+    store = MapStore.open(map_root if map_root is not None else metrics["map"])
+    if metrics.get("map_id") and metrics["map_id"] != store.map_id:
+        raise DataError(mpath, f"was made against map {metrics['map_id']}, but {store.root} is map {store.map_id}")
+    run = None
+    if metrics.get("run_path") and Path(metrics["run_path"]).is_dir():
+        run = read_run(metrics["run_path"], check_images=False)
+    if truth is not None:
+        tt, tp = read_tum(truth)
+        source = "groundtruth" if Path(truth).name == "groundtruth.tum" else "truth"
+        run = replace(run, truth_times=tt, truth_poses=tp) if run is not None else None
+    else:
+        found = run_truth(run) if run is not None else None
+        if found is None:
+            where = metrics.get("run_path") or "the run folder"
+            raise DataError(mpath, f"no truth to evaluate against: {where} has no truth.tum or groundtruth.tum; "
+                                   f"give one with --truth FILE")
+        tt, tp, source = found
+    if run is None:     # the run folder is gone: what the figure needs of it
+        run = SimpleNamespace(name=metrics["run"], conditions=metrics.get("conditions", []), truth_times=tt,
+                              truth_poses=tp, groundtruth_times=None, groundtruth_poses=None, root=None)
+    track = _Track(metrics, frames, times, poses, run)
+    tm, ev = truth_metrics(track, store, tt, tp, source, max_path_distance_m)
+    metrics = merge_truth_metrics(metrics, tm)
+    write_frames_csv(folder / "frames.csv", track, ev, track.bounds)
+    atomic_write_text(mpath, json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+    if figure:
+        from .plots import plot_trajectory
+
+        plot_trajectory(folder / "trajectory.png", track, store, ev, metrics)
+    return metrics

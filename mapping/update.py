@@ -55,9 +55,10 @@ from signatures.bank import Bank
 from mapping import places as places_mod
 from mapping.build import _merge as build_settings, mine_and_refine, place_negatives, place_views
 from mapping.codec import PlaceData, encode_place
+from mapping.identity import map_id_of
 from mapping.store import JOURNAL as BUILD_JOURNAL, MANIFEST, PLACES_DIR, MapStore, place_file_name, write_manifest
 
-__all__ = ["default_config", "Localisation", "find_run", "weak_places", "update_map"]
+__all__ = ["default_config", "Localisation", "find_run", "weak_places", "check_localisations", "update_map"]
 
 JOURNAL = "update.jsonl"
 SUMMARY = "update_summary.json"
@@ -230,6 +231,10 @@ def _copy_map(src: Path, dst: Path) -> None:
     doc = json.loads((src / MANIFEST).read_text(encoding="utf-8"))
     if (dst / MANIFEST).is_file():
         have = json.loads((dst / MANIFEST).read_text(encoding="utf-8"))
+        if not isinstance(have, dict) or map_id_of(have) != store.map_id:
+            other = map_id_of(have) if isinstance(have, dict) else "?"
+            raise DataError(dst / MANIFEST, f"--out names an existing, different map (map_id {other}; the map "
+                                            f"being updated is {store.map_id}); choose a new folder")
         if have.get("history", [])[:len(doc.get("history", []))] == doc.get("history", []) and \
                 have.get("params") == doc.get("params"):
             return  # a copy (maybe already updated by these runs) is there: the update resumes or stops
@@ -405,8 +410,55 @@ def _new_place(old: PlaceData, place, views, negatives, cfg, T_place_vehicle, uc
     return data, k, T_place_vehicle, align
 
 
+def check_localisations(store: MapStore, localisations, allow_older_generation: bool = False,
+                        applied: bool = False) -> None:
+    """Every localisation must have been made against this map (``map_id``, :mod:`mapping.identity`) and
+    its current generation; DataError naming the localisation's ``metrics.json`` and saying why not.
+
+    A localisation of an older generation (the map was updated since) is refused unless
+    ``allow_older_generation``: the places it found weak may have been updated already.  ``applied``:
+    these localisations made the map's latest generation (re-running a finished update changes nothing).
+    """
+    for loc in localisations:
+        mpath = Path(loc.folder) / "metrics.json"
+        m = loc.metrics
+        lid, lgen = m.get("map_id"), m.get("map_generation")
+        if lid is None:
+            # written before maps had identities: only by the folder it named, and only that generation
+            named = Path(m["map"]).resolve() if m.get("map") else None
+            if named != Path(store.root).resolve():
+                raise DataError(mpath, f"records no map identity (written before maps had one) and was made against "
+                                       f"{m.get('map')!r}, not {store.root}; localise the run against this map again")
+        elif lid != store.map_id:
+            raise DataError(mpath, f"was made against another map (map_id {lid}, {m.get('map')}), not {store.root} "
+                                   f"(map_id {store.map_id}): an update adds a run's appearance to the map it was "
+                                   f"localised against; localise the run against this map first")
+        if lgen is None or applied:
+            continue
+        if int(lgen) > store.generation:
+            raise DataError(mpath, f"was made against generation {lgen} of this map, but {store.root} is at "
+                                   f"generation {store.generation}: a newer state than the one here")
+        if int(lgen) < store.generation and not allow_older_generation:
+            raise DataError(mpath, f"was made against generation {lgen} of this map, which is now at generation "
+                                   f"{store.generation}: its weak places may have been updated since; localise the "
+                                   f"run again, or pass --allow-older-generation to use it anyway")
+
+
+def _check_out(out: Path) -> None:
+    """``--out`` must be a folder we can write (new, or a copy of the map): DataError naming it otherwise."""
+    if out.exists() and not out.is_dir():
+        raise DataError(out, "--out exists and is not a folder: name a new folder for the updated map")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".scenesig-write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise DataError(out, f"--out cannot be written: {exc.strerror or exc}") from None
+
+
 def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | None = None,
-               progress: bool = True) -> dict:
+               progress: bool = True, allow_older_generation: bool = False) -> dict:
     """Update a map with the weak places of one or more localisations (see the module docstring).
 
     Parameters
@@ -417,6 +469,8 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
     out : optional new map folder: the map is copied there first and updated there.
     runs_dirs : folders holding the map's training runs (default: the live runs' parent folders).
     config : overrides of :data:`default_config`.
+    allow_older_generation : accept localisations made against an older generation of this map
+        (:func:`check_localisations`; localisations of another map are always refused).
 
     Returns
     -------
@@ -429,20 +483,23 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
 
     cfg = merge_settings(default_config, config, "update")
     root = Path(map_root)
-    MapStore.open(root)  # a finished, valid map (DataError otherwise)
+    source = MapStore.open(root)  # a finished, valid map (DataError otherwise)
+    locs = list(localisations)
+    inputs = _digest({"localisations": [loc.digest for loc in locs], "config": cfg})
+    applied = bool(source.history) and source.history[-1].get("inputs") == inputs
+    check_localisations(source, locs, allow_older_generation, applied)
     if out is not None:
         root = Path(out)
+        _check_out(root)
         _copy_map(Path(map_root), root)
     if (root / BUILD_JOURNAL).exists():
         raise DataError(root / BUILD_JOURNAL, "a build of this map is unfinished; finish it before updating")
     store = MapStore.open(root, cache_size=0)
     doc = json.loads((root / MANIFEST).read_text(encoding="utf-8"))
-    locs = list(localisations)
     hints = [loc.run.root.parent for loc in locs if loc.run.root is not None]
     runs = _Runs(list(runs_dirs) + list(dict.fromkeys(hints)))
     for loc in locs:
         runs.add(loc.run)
-    inputs = _digest({"localisations": [loc.digest for loc in locs], "config": cfg})
     gen = store.generation + 1
     t0 = time.perf_counter()
     verdicts = {str(loc.folder): weak_places(store, loc, cfg) for loc in locs}
@@ -525,6 +582,7 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
         p.update({"file": r["file"], "sha256": r["sha256"], "bytes": r["bytes"], "signatures": r["signatures"]})
         p.setdefault("extra", {})["experiences"] = list(p["extra"].get("experiences", [])) + r["experiences"]
     new["generation"] = gen
+    new["map_id"] = store.map_id          # the identity survives the update (written out for an old map)
     new["history"] = list(doc.get("history", [])) + [{
         "generation": gen, "inputs": inputs, "places": sorted(done),
         "runs": [{"run": loc.run.name, "conditions": list(loc.run.conditions)} for loc in locs]}]

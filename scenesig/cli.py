@@ -23,6 +23,7 @@ COMMANDS = (
     "map_show",
     "map_update",
     "localise",
+    "evaluate",
     "report",
     "experiment",
     "bench",

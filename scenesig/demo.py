@@ -236,7 +236,8 @@ def print_table(rows: list[dict], file=sys.stdout) -> None:
         for name, m in r["methods"].items():
             blind = m.get("oracle") == "none"
             print(f"{r['run']:16s} {','.join(r['conditions']):10s} {name:15s} "
-                  f"{_fmt(m['lateral_error_m']['median']):>9s} {_fmt(m['heading_error_deg']['median']):>9s} "
+                  f"{_fmt((m.get('lateral_error_m') or {}).get('median')):>9s} "
+                  f"{_fmt((m.get('heading_error_deg') or {}).get('median')):>9s} "
                   f"{_fmt((m.get('lateral_error_map_m') or {}).get('median')):>9s} "
                   f"{_fmt(m['localised_fraction']):>9s} {m['failures']:>8d} {_fmt(m.get('failures_per_km'), 1):>7s} "
                   f"{_fmt(m['blind_fraction_over_20m'], 3):>9s} "

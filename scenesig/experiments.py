@@ -426,6 +426,11 @@ def summary_rows(outputs: list) -> list[dict]:
                      "first_fix_m": m.get("first_fix_m"), "relocalisations": m.get("relocalisations"),
                      "false_fixes": m.get("false_fixes"),
                      "relocalise_median_m": (m.get("relocalise_m") or {}).get("median"),
+                     # uncertainty (localiser.uncertainty): the median 95 % lateral bound of the localised
+                     # frames, and with truth the share of them within it; "none" where no truth was given
+                     "lateral_bound_95_median_m": m.get("lateral_bound_95_m_median"),
+                     "bound_coverage_95": m.get("bound_coverage_95"),
+                     "truth_source": m.get("truth_source"),
                      "folder": str(o.folder)})
     return rows
 

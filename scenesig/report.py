@@ -94,7 +94,11 @@ def _summary_table(rows: list[dict], out: Path) -> str:
             "<th title='times the localiser read the INS/GPS'>oracle reads</th>"
             "<th title='distance driven before the first localisation (no GPS: found from the map)'>first fix (m)</th>"
             "<th>relocalisations</th><th title='median distance from lost to found'>relocalise (m)</th>"
-            "<th title='accepted localisations more than 5 m from the truth'>false fixes</th></tr>")
+            "<th title='accepted localisations more than 5 m from the truth'>false fixes</th>"
+            "<th title='median 95 % bound on the lateral error relative to the map (localised frames)'>"
+            "lateral bound 95 % (m)</th>"
+            "<th title='share of localised frames whose lateral error relative to the map is within their bound "
+            "(needs truth)'>bound coverage</th></tr>")
     body = []
     for r in rows:
         cls = " class='sig'" if r["method"] == "signatures" else ""
@@ -114,8 +118,16 @@ def _summary_table(rows: list[dict], out: Path) -> str:
             f"<td>{_fmt(r.get('first_fix_m'), 1)}</td><td>{_fmt(r.get('relocalisations'))}</td>"
             f"<td>{_fmt(r.get('relocalise_median_m'), 1)}</td>"
             f"<td class='{'bad' if r.get('false_fixes') else 'good' if r.get('false_fixes') == 0 else ''}'>"
-            f"{_fmt(r.get('false_fixes'))}</td></tr>")
+            f"{_fmt(r.get('false_fixes'))}</td>"
+            f"<td>{_fmt(r.get('lateral_bound_95_median_m'))}</td>"
+            f"<td class='{_coverage_class(r.get('bound_coverage_95'))}'>"
+            f"{_fmt(r.get('bound_coverage_95'), pct=True)}</td></tr>")
     return f"<table id='summary'>{head}{''.join(body)}</table>"
+
+
+def _coverage_class(c) -> str:
+    """An honest bound covers about 95 % of the errors; below 90 % it claims too much."""
+    return "" if c is None else "good" if c >= 0.9 else "bad"
 
 
 def _ratio_table(rows: list[dict]) -> str:

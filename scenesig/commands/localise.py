@@ -46,7 +46,7 @@ def run(args) -> int:
                        realtime=bool(args.realtime), speed=float(args.speed or 1.0), oracle=args.oracle,
                        config={"method": opts} if opts else None)
     keys = ("method", "run", "oracle", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
-            "blind_fraction_over_20m", "first_fix_m", "relocalisations", "false_fixes", "realtime_factor",
-            "frames_corrupt", "frames_dropped")
+            "blind_fraction_over_20m", "first_fix_m", "relocalisations", "false_fixes", "lateral_bound_95_m_median",
+            "bound_coverage_95", "truth_source", "realtime_factor", "frames_corrupt", "frames_dropped")
     print(json.dumps({k: metrics[k] for k in keys if k in metrics}, indent=1))
     return 0

@@ -14,6 +14,8 @@ def register(groups):
     p.add_argument("--runs-dir", action="append", default=[], metavar="DIR",
                    help="folder holding the map's training runs (default: beside the live runs; repeatable)")
     p.add_argument("--config", default=None, help="overrides of mapping.update.default_config (JSON)")
+    p.add_argument("--allow-older-generation", action="store_true",
+                   help="accept localisations made against an older generation of this map (never another map's)")
     p.set_defaults(_run=run)
 
 
@@ -22,8 +24,17 @@ def run(args) -> int:
     from mapping.build import load_config
     from mapping.update import update_map
 
+    from pathlib import Path
+
+    from surveys.errors import DataError
+
     locs = [read_localisation(folder, args.runs_dir) for folder in args.localisations]
-    summary = update_map(args.map, locs, out=args.out, runs_dirs=args.runs_dir, config=load_config(args.config))
+    try:
+        summary = update_map(args.map, locs, out=args.out, runs_dirs=args.runs_dir, config=load_config(args.config),
+                             allow_older_generation=args.allow_older_generation)
+    except OSError as exc:      # a read-only map folder, a full disk: say where, no traceback
+        where = Path(exc.filename) if exc.filename else Path(args.out or args.map)
+        raise DataError(where, f"cannot write: {exc.strerror or exc}") from None
     keys = ("map", "generation", "updated", "signatures_added", "bytes_added", "seconds_per_updated_place",
             "message")
     print(json.dumps({k: summary[k] for k in keys if k in summary}, indent=1))
