@@ -1,0 +1,330 @@
+"""A deployable localiser: it runs without ground truth (evaluation is a step of its own), states every
+frame's uncertainty (95 % bounds from the pose graph's marginals, ``covariances.csv``), and a map update
+only takes localisations of the map (and generation) it updates."""
+import dataclasses
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from localiser.outputs import TRUTH_KEYS, evaluate_folder, read_frames_csv, write_outputs
+from localiser.replay import replay
+from scenesig.cli import main
+from surveys.run import read_run
+
+from pipeline_world import TruthMethod, make_live_run, make_map
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    root = tmp_path_factory.mktemp("deployable_world")
+    run = make_live_run(root / "live", length_m=60.0)
+    store = make_map(root / "map", length_m=80.0)
+    return root, run, store
+
+
+def _no_truth(run):
+    return dataclasses.replace(run, truth_times=None, truth_poses=None, groundtruth_times=None,
+                               groundtruth_poses=None)
+
+
+def _finite_json(obj) -> bool:
+    text = json.dumps(obj, allow_nan=False)    # raises on NaN / inf
+    return "NaN" not in text
+
+
+# ------------------------------------------------------------------------------------- 1. no truth needed
+def test_outputs_without_truth_and_the_same_trajectory(world, tmp_path):
+    """Without truth: every output written, ``truth_source: "none"``, no error keys; trajectory and
+    covariances byte-identical to the same replay written with truth; ``scenesig evaluate`` later gives
+    the errors the in-process evaluation gives."""
+    _, run, store = world
+    res = replay(store, run, TruthMethod(run), every=4)
+    with_truth = write_outputs(res, store, tmp_path / "truth", figure=False)
+    blind = dataclasses.replace(res, run=_no_truth(run))
+    m = write_outputs(blind, store, tmp_path / "none", figure=True)
+    out = tmp_path / "none"
+    assert sorted(p.name for p in out.iterdir()) == ["covariances.csv", "frames.csv", "metrics.json",
+                                                     "trajectory.png", "trajectory.tum"]
+    for name in ("trajectory.tum", "covariances.csv"):
+        assert (out / name).read_bytes() == (tmp_path / "truth" / name).read_bytes(), name
+    disk = json.loads((out / "metrics.json").read_text())
+    assert disk["truth_source"] == "none" and with_truth["truth_source"] == "truth"
+    assert not set(TRUTH_KEYS) & set(disk), "no error keys without truth"
+    assert _finite_json(disk) and disk == m
+    # what needs no truth is there: coverage along the odometry, the bounds, the map's identity
+    assert disk["localised_fraction"] == pytest.approx(1.0) and disk["failures"] == 0
+    assert disk["distance_m"] == pytest.approx(with_truth["distance_m"], rel=0.05)
+    assert disk["lateral_bound_95_m_median"] == with_truth["lateral_bound_95_m_median"] > 0
+    assert disk["map_id"] == store.map_id and disk["map_generation"] == 0
+    fr_none, fr_truth = read_frames_csv(out / "frames.csv"), read_frames_csv(tmp_path / "truth" / "frames.csv")
+    assert np.isnan(fr_none["lateral_error"]).all() and np.isfinite(fr_truth["lateral_error"]).all()
+    for c in ("lateral_bound_95_m", "longitudinal_bound_95_m", "heading_bound_95_deg", "localised", "place"):
+        np.testing.assert_array_equal(fr_none[c], fr_truth[c])
+
+    # evaluation on its own, from the files, with the truth given separately
+    truth_file = Path(run.root) / "truth.tum"
+    assert main(["evaluate", str(out), "--truth", str(truth_file), "--no-figure"]) == 0
+    ev = json.loads((out / "metrics.json").read_text())
+    assert ev["truth_source"] == "truth"
+    for k in ("lateral_error_m", "heading_error_deg", "localised_fraction", "bound_coverage_95",
+              "bound_coverage_95_all", "false_fixes", "frames_evaluated"):
+        assert ev[k] == pytest.approx(with_truth[k], rel=1e-6, abs=1e-9), k
+    fr = read_frames_csv(out / "frames.csv")
+    np.testing.assert_allclose(fr["lateral_error"], fr_truth["lateral_error"], atol=2e-6)
+    # ... and without truth anywhere, evaluate says so and changes nothing
+    before = (out / "metrics.json").read_bytes()
+    assert main(["evaluate", str(out), "--truth", str(tmp_path / "missing.tum")]) == 2
+    assert (out / "metrics.json").read_bytes() == before
+
+
+def test_report_and_figures_take_outputs_without_truth(world, tmp_path):
+    from scenesig.report import build_report
+
+    _, run, store = world
+    res = replay(store, run, TruthMethod(run), every=4)
+    write_outputs(dataclasses.replace(res, run=_no_truth(run)), store, tmp_path / "loc" / "live" / "signatures")
+    index = build_report([tmp_path / "loc"], tmp_path / "report")
+    assert Path(index).is_file() and "lateral bound 95 %" in Path(index).read_text()
+    assert main(["experiment", "localisation", str(tmp_path / "loc"), "--out", str(tmp_path / "fig")]) == 0
+
+
+def test_oracle_ins_without_ins_fails_before_replaying(world, tmp_path, capsys):
+    _, run, store = world
+    bare = tmp_path / "bare"
+    shutil.copytree(run.root, bare)
+    for name in ("groundtruth.tum", "gps.csv"):
+        (bare / name).unlink(missing_ok=True)
+    assert main(["localise", str(store.root), str(bare), "--oracle", "ins", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "groundtruth.tum" in err and "localise" not in err.split("error:")[0]
+    assert "it/s" not in err and "frame/s" not in err          # no progress bar: nothing was replayed
+    assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------------------------- 2. uncertainty out
+def test_bounds_from_the_marginals_are_honest_and_beside_the_trajectory(world, tmp_path):
+    """A weak localiser whose noise is what its covariance says: the bounds cover about 95 % of the
+    lateral errors (relative to the map: it has its own georeferencing error here), both for the localised
+    frames and for every frame; ``covariances.csv`` holds what the bounds come from."""
+    from evo.tools import file_interface
+
+    from localiser.evaluation import ReferencePath
+    from localiser.uncertainty import Z_95, read_covariances_csv
+    from surveys.geometry import make_pose, rot_z
+
+    root, run, _ = world
+    T_off = make_pose(rot_z(0.01), [3.0, -2.0, 0.0])
+    store = make_map(tmp_path / "misplaced", length_m=80.0, T_map_world=T_off)
+    sigma = (0.003, 0.003, 0.01, 0.25, 0.25, 0.1)
+    res = replay(store, run, TruthMethod(run, sigma=sigma, T_map_world=T_off), every=2)
+    m = write_outputs(res, store, tmp_path / "out", figure=False)
+    fr = read_frames_csv(tmp_path / "out" / "frames.csv")
+    lat, bound = np.abs(fr["lateral_error"]), fr["lateral_bound_95_m"]
+    assert np.isfinite(bound).all() and np.all(bound > 0)
+    assert m["bound_coverage_95"] >= 0.9 and m["bound_coverage_95_all"] >= 0.9, m
+    loc = fr["localised"] > 0
+    m_lat = _map_relative(res, store)
+    assert m["bound_coverage_95"] == pytest.approx(np.mean(np.abs(m_lat[loc]) <= bound[loc]))
+    assert np.mean(lat <= bound) < 0.5, "the raw errors carry the map's 3.6 m offset: not covered"
+    # useful too: near the solver's own sigma, not inflated without reason
+    assert 1.0 * Z_95 * 0.25 * 0.3 < m["lateral_bound_95_m_median"] < 2.0 * Z_95 * 0.25
+    assert m["lateral_bound_95_m_median"] == pytest.approx(np.median(bound[loc]))
+    # covariances.csv: one planar covariance per pose of the trajectory (which evo still reads)
+    t, P = read_covariances_csv(tmp_path / "out" / "covariances.csv")
+    traj = file_interface.read_tum_trajectory_file(str(tmp_path / "out" / "trajectory.tum"))
+    np.testing.assert_allclose(t, traj.timestamps, atol=1e-9)
+    assert np.all(np.linalg.eigvalsh(P) > 0)
+    _, left, _ = ReferencePath(np.stack([store.places[i].T_world_place for i in sorted(store.places)])).project(
+        res.poses[:, :3, 3])
+    lat_sigma = np.sqrt(np.einsum("ni,nij,nj->n", left, P[:, :2, :2], left))
+    np.testing.assert_allclose(Z_95 * lat_sigma, bound, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.degrees(Z_95 * np.sqrt(P[:, 2, 2])), fr["heading_bound_95_deg"], rtol=1e-5)
+
+
+def _map_relative(res, store):
+    from localiser.evaluation import lateral_heading_errors
+    from localiser.outputs import map_relative_truth, reference_path
+    from surveys.geometry import interpolate_poses
+
+    run = res.run
+    tm = interpolate_poses(run.truth_times, map_relative_truth(store, run.truth_poses), res.times).reshape(-1, 4, 4)
+    return lateral_heading_errors(res.poses, tm, reference_path(store))[0]
+
+
+def test_bounds_grow_while_dead_reckoning(world):
+    """Blind stretches: the marginal (and so the bound) grows with the odometry since the last fix."""
+    from localiser.uncertainty import bounds_from_result
+    from pipeline_world import SPEED
+
+    _, run, store = world
+    res = replay(store, run, TruthMethod(run, blind=[(20.0, 38.0)]), every=2)
+    b = bounds_from_result(res, store)["lateral_bound_95_m"]
+    s = 2.0 + SPEED * (res.times - run.truth_times[0])
+    inside, before = (s > 21) & (s < 37), s < 18
+    assert np.median(b[inside]) > 1.5 * np.median(b[before])
+    assert np.all(np.diff(b[inside]) >= -1e-9), "no fix in the stretch: the bound only grows"
+
+
+def test_posegraph_covariance_at_a_time_matches_the_latest_and_grows_with_odometry():
+    import tempfile
+
+    from localiser.pipeline import Localiser
+
+    with tempfile.TemporaryDirectory() as d:
+        run = make_live_run(Path(d) / "live", length_m=30.0)
+        store = make_map(Path(d) / "map", length_m=40.0)
+        loc = Localiser(store, lambda t: run.pose_at(t, "groundtruth"))
+        incs = run.odometry_increments()
+        loc.start(float(run.odometry_times[0]))
+        for k in range(1, 30):
+            loc.add_odometry(float(run.odometry_times[k]), incs[k - 1])
+        t_last = float(run.odometry_times[29])
+        np.testing.assert_allclose(loc.covariance(t_last), loc.graph.covariance(), rtol=1e-9, atol=1e-15)
+        earlier = loc.covariance(float(run.odometry_times[20]))
+        assert np.trace(earlier[3:, 3:]) < np.trace(loc.covariance(t_last)[3:, 3:])
+
+
+# ------------------------------------------------------------------------------------- 5. map identity
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """The tiny map and its night run's localisation (shared with tests/test_update.py)."""
+    from build_world import tiny_map, tiny_runs
+    from localiser.replay import localise
+
+    base = tmp_path_factory.getbasetemp()
+    runs = tiny_runs(base)
+    root = tiny_map(base)
+    night = next(r for r in runs if r.conditions[0] == "night")
+    loc = base / "loc_night"
+    if not (loc / "metrics.json").exists():
+        localise(root, night.root, loc, progress=False, figure=False)
+    return root, loc, night
+
+
+def _tree_hash(root: Path) -> str:
+    h = hashlib.sha256()
+    for p in sorted(Path(root).rglob("*")):
+        if p.is_file():
+            h.update(str(p.relative_to(root)).encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def _other_map(root: Path, dst: Path) -> Path:
+    """Another map of the same runs and settings: what a second build gives, but for its identity."""
+    from mapping.identity import new_map_id
+
+    shutil.copytree(root, dst)
+    doc = json.loads((dst / "manifest.json").read_text())
+    doc["map_id"] = new_map_id()
+    (dst / "manifest.json").write_text(json.dumps(doc, indent=1, sort_keys=True))
+    return dst
+
+
+def test_localisation_records_the_map_identity(tiny):
+    from mapping.store import MapStore
+
+    root, loc, _ = tiny
+    m = json.loads((loc / "metrics.json").read_text())
+    store = MapStore.open(root)
+    assert m["map_id"] == store.map_id and m["map_generation"] == store.generation == 0
+    assert len(store.map_id) == 36 and not store.map_id_derived
+
+
+def test_map_update_refuses_another_maps_localisation_and_out_onto_another_map(tiny, tmp_path, capsys):
+    root, loc, _ = tiny
+    other = _other_map(root, tmp_path / "other")
+    before = _tree_hash(other)
+    assert main(["map", "update", str(other), str(loc)]) == 2
+    err = capsys.readouterr().err
+    assert "another map" in err and str(loc / "metrics.json") in err and "Traceback" not in err
+    assert _tree_hash(other) == before
+    # --out onto an existing, different map: refused by identity, that map unchanged, the source too
+    src_before = _tree_hash(root)
+    assert main(["map", "update", str(root), str(loc), "--out", str(other)]) == 2
+    err = capsys.readouterr().err
+    assert "existing, different map" in err and str(other) in err
+    assert _tree_hash(other) == before and _tree_hash(root) == src_before
+
+
+def test_map_update_out_onto_a_file_or_a_read_only_place(tiny, tmp_path, capsys):
+    root, loc, _ = tiny
+    target = tmp_path / "a_file"
+    target.write_text("not a map\n")
+    assert main(["map", "update", str(root), str(loc), "--out", str(target)]) == 2
+    err = capsys.readouterr().err
+    assert str(target) in err and "not a folder" in err and "Traceback" not in err
+    assert target.read_text() == "not a map\n"
+    ro = Path("/sys/scenesig_test_map")          # sysfs: read-only even for root
+    if os.access("/sys", os.W_OK) and ro.parent.exists():
+        try:
+            ro.mkdir()
+        except OSError:
+            pass
+        else:
+            ro.rmdir()
+            pytest.skip("/sys is writable here: no read-only place to test")
+    assert main(["map", "update", str(root), str(loc), "--out", str(ro)]) == 2
+    err = capsys.readouterr().err
+    assert str(ro) in err and "cannot be written" in err and "Traceback" not in err
+
+
+def test_map_update_of_an_older_generation_needs_asking(tiny, tmp_path, capsys):
+    """A localisation of generation 0 against the map at generation 1: refused (exit 2) unless
+    --allow-older-generation; re-running the update that made generation 1 still changes nothing."""
+    from mapping.store import MapStore
+
+    root, loc, _ = tiny
+    work = tmp_path / "map"
+    shutil.copytree(root, work)
+    assert main(["map", "update", str(work), str(loc)]) == 0
+    capsys.readouterr()
+    store = MapStore.open(work)
+    assert store.generation == 1 and store.map_id == MapStore.open(root).map_id   # the identity survives
+    assert main(["map", "update", str(work), str(loc)]) == 0                       # already applied
+    assert "already applied" in capsys.readouterr().out
+    stale = tmp_path / "stale"
+    shutil.copytree(loc, stale)
+    m = json.loads((stale / "metrics.json").read_text())
+    m["method_config"] = {**m["method_config"], "note": "another localisation of generation 0"}
+    (stale / "metrics.json").write_text(json.dumps(m))
+    before = _tree_hash(work)
+    assert main(["map", "update", str(work), str(stale)]) == 2
+    err = capsys.readouterr().err
+    assert "generation 0" in err and "--allow-older-generation" in err
+    assert _tree_hash(work) == before
+    assert main(["map", "update", str(work), str(stale), "--allow-older-generation"]) == 0
+    assert MapStore.open(work).generation in (1, 2)
+
+
+def test_legacy_map_without_identity_is_read_and_updated(tiny, tmp_path):
+    """A map written before identities: readable, its identity derived (the same for every reader); its
+    localisations record that identity, and the update writes it into the manifest."""
+    from localiser.outputs import read_localisation
+    from mapping.identity import derived_map_id
+    from mapping.store import MapStore
+    from mapping.update import check_localisations
+
+    root, loc, _ = tiny
+    old = tmp_path / "old"
+    shutil.copytree(root, old)
+    doc = json.loads((old / "manifest.json").read_text())
+    del doc["map_id"]
+    (old / "manifest.json").write_text(json.dumps(doc, indent=1, sort_keys=True))
+    store = MapStore.open(old)
+    assert store.map_id_derived and store.map_id == derived_map_id(doc)
+    ours = tmp_path / "loc"
+    shutil.copytree(loc, ours)
+    m = json.loads((ours / "metrics.json").read_text())
+    m.update({"map_id": store.map_id, "map": str(old)})
+    (ours / "metrics.json").write_text(json.dumps(m))
+    check_localisations(store, [read_localisation(ours)])            # accepted
+    with pytest.raises(Exception, match="another map"):
+        check_localisations(MapStore.open(root), [read_localisation(ours)])
