@@ -7,9 +7,16 @@ search is limited to ``prior_radius_m`` around it on the tile that holds it.  Th
 be placed, or the estimate near the prior correlates poorly (whole-image NCC below ``min_ncc``),
 every tile is searched and the one on which the whole image correlates best wins.
 
+An estimate is reported as a localisation only when it passes the matcher's own checks
+(:func:`_verdict`): a finite position, a whole-image NCC of at least ``min_ncc`` on the chosen tile,
+and the sensed image's footprint under the estimated transform lying on that tile (at least
+``min_coverage`` of it: a query outside every tile can still find a best-correlating spot on one, but
+not one that covers it).  Otherwise the image is *not localised*: no position is reported, ``reason``
+says which check failed on which tile, and the summary counts and names those images.
+
 Outputs in ``OUT``: ``track.csv`` (image, tile, x_px, y_px, lat, lon, east_m, north_m,
-scale, rotation_deg, method, ncc, seconds, and error_m when the images folder has a
-``truth.csv`` with image, lat, lon), ``track.png`` (the track over the tiles) and
+scale, rotation_deg, method, ncc, seconds, localised, coverage, reason, and error_m when the images
+folder has a ``truth.csv`` with image, lat, lon), ``track.png`` (the track over the tiles) and
 ``summary.json``.  Files are written atomically.
 """
 from __future__ import annotations
@@ -34,7 +41,36 @@ __all__ = ["localise_sequence", "IMAGE_SUFFIXES", "COLUMNS"]
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 
 COLUMNS = ("image", "tile", "x_px", "y_px", "lat", "lon", "east_m", "north_m", "scale",
-           "rotation_deg", "method", "ncc", "seconds")
+           "rotation_deg", "method", "ncc", "seconds", "localised", "coverage", "reason")
+
+
+def footprint_coverage(transform: np.ndarray, sensed_shape, tile_size, n: int = 11) -> float:
+    """Share of the sensed image (an n x n grid of points over it) that the sensed -> tile affine maps
+    inside the tile (``tile_size`` = (width, height) px)."""
+    from aerial.affine import apply_affine
+
+    h, w = sensed_shape[:2]
+    gx, gy = np.meshgrid(np.linspace(0, w - 1, n), np.linspace(0, h - 1, n))
+    p = apply_affine(transform, np.stack([gx.ravel(), gy.ravel()], axis=1))
+    W, H = tile_size
+    inside = (p[:, 0] >= -0.5) & (p[:, 0] <= W - 0.5) & (p[:, 1] >= -0.5) & (p[:, 1] <= H - 0.5)
+    return float(inside.mean())
+
+
+def _verdict(loc, tile, sensed_shape, min_ncc: float, min_coverage: float) -> tuple[bool, float, str]:
+    """``(localised, coverage, reason)`` of the matcher's estimate ``loc`` on ``tile``: its own checks
+    (``min_ncc`` is the NCC bar for this estimate: higher when it is the best of a search of every tile)."""
+    if not np.all(np.isfinite(loc.centre)) or not np.all(np.isfinite(loc.transform)):
+        return False, 0.0, f"no estimate on any tile (best: {tile.name}, {loc.method})"
+    cov = footprint_coverage(loc.transform, sensed_shape, tile.size or tile.image().shape[1::-1])
+    why = []
+    if not loc.ncc >= min_ncc:
+        why.append(f"whole-image NCC {loc.ncc:.3f} < {min_ncc:g}")
+    if cov < min_coverage:
+        why.append(f"only {100 * cov:.0f} % of the image would lie on the tile (needs {100 * min_coverage:.0f} %)")
+    if why:
+        return False, cov, f"best match on tile {tile.name} fails its checks: " + "; ".join(why)
+    return True, cov, ""
 
 
 def _read_truth(path: Path) -> dict:
@@ -49,7 +85,7 @@ def _read_truth(path: Path) -> dict:
 
 
 def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m: float = 30.0,
-                      config: dict | None = None, min_ncc: float = 0.2,
+                      config: dict | None = None, min_ncc: float = 0.2, min_coverage: float = 0.5,
                       progress: bool = True) -> dict:
     """Localise every image of ``images_dir`` (sorted by name) on the tiles of ``tiles_dir``.
 
@@ -68,7 +104,12 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
         Overrides of :data:`aerial.mrsmcc.default_config`.
     min_ncc : float
         An estimate near the prior whose whole-image NCC is lower triggers a search of every tile;
-        a final estimate below it is reported but not used as the next prior.
+        a final estimate below it is not a localisation (``localised`` 0, no position).  An estimate
+        found by searching every tile must reach MRSM-CC's ``attitude_min_ncc`` (0.3) too: the best of
+        many correlations is high by chance more often than one near a prior.
+    min_coverage : float
+        Share of the sensed image that must lie on the chosen tile under the estimate; less, and it is
+        not a localisation (the image is off the tile, or outside every tile).
     progress : bool
 
     Returns
@@ -76,7 +117,10 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
     dict
         The summary (also ``OUT/summary.json``).
     """
+    from aerial.mrsmcc import default_config as mrsmcc_config
+
     tiles = load_tiles(tiles_dir)
+    search_ncc = float({**mrsmcc_config, **(config or {})}["attitude_min_ncc"])
     images_dir, out = Path(images_dir), Path(out_dir)
     if not images_dir.is_dir():
         raise DataError(images_dir, "images folder not found")
@@ -114,19 +158,25 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
         if not cands or not cands[0][1].ncc >= min_ncc:
             # No prior, or lost near it: search every tile.
             cands += [(i, est(i).locate(img)) for i in range(len(tiles))]
-        ti, loc = max(cands, key=lambda c: np.nan_to_num(c[1].ncc, nan=-np.inf))
+        best = max(range(len(cands)), key=lambda k: np.nan_to_num(cands[k][1].ncc, nan=-np.inf))
+        ti, loc = cands[best]
         row = {"image": path.name, "tile": tiles[ti].name}
-        if np.all(np.isfinite(loc.centre)):
+        # the best of a search over every tile is the maximum of many correlations: it must clear the
+        # matcher's own bar for trusting a whole-image correlation (attitude_min_ncc), not just min_ncc
+        bar = min_ncc if (best == 0 and tile is not None) else max(min_ncc, search_ncc)
+        ok, coverage, reason = _verdict(loc, tiles[ti], img.shape, bar, min_coverage)
+        if ok:
             ll = tiles[ti].pixel_to_latlon(loc.centre)
             en = tiles.latlon_to_local(ll)
             row.update(x_px=loc.centre[0], y_px=loc.centre[1], lat=ll[0], lon=ll[1],
                        east_m=en[0], north_m=en[1], scale=loc.scale,
                        rotation_deg=loc.rotation_deg)
-            last = tuple(ll) if loc.ncc >= min_ncc else None
+            last = tuple(ll)
         else:
             row.update({k: float("nan") for k in COLUMNS[2:10]})
             last = None
-        row.update(method=loc.method, ncc=loc.ncc, seconds=time.perf_counter() - t0)
+        row.update(method=loc.method, ncc=loc.ncc, seconds=time.perf_counter() - t0, localised=int(ok),
+                   coverage=coverage, reason=reason)
         if truth:
             if path.name in truth and np.isfinite(row["lat"]):
                 d = tiles.latlon_to_local(np.array([row["lat"], row["lon"]])) - \
@@ -144,9 +194,19 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
                         f"{v:.3f}" if isinstance(v, float) else v) for k, v in r.items()})
     atomic_write_text(out / "track.csv", buf.getvalue())
     _plot_track(tiles, rows, truth, out / "track.png")
-    located = [r for r in rows if np.isfinite(r["lat"])]
+    located = [r for r in rows if r["localised"]]
+    missed = [r for r in rows if not r["localised"]]
     summary = {"images": len(rows), "localised": len(located),
+               "localised_fraction": len(located) / len(rows),
+               # images the tiles could not place (off every tile, or a match failing its checks), and why
+               "not_localised": {r["image"]: r["reason"] for r in missed},
                "seconds_per_image": float(np.mean([r["seconds"] for r in rows]))}
+    if missed:
+        import logging
+
+        logging.getLogger(__name__).warning(
+            "%d of %d images not localised (no tile covers them, or the match failed its checks), e.g. %s: %s",
+            len(missed), len(rows), missed[0]["image"], missed[0]["reason"])
     if truth:
         err = np.array([r["error_m"] for r in rows], float)
         summary["median_error_m"] = float(np.nanmedian(err)) if np.isfinite(err).any() else None

@@ -200,12 +200,18 @@ def coverage_metrics(distances, localised, resets=None, failure_distance_m: floa
             if loc[i]:
                 c = 0.0
     return {
-        "localised_fraction": within / total if total > 0 else None,
+        # shares of a distance, summed segment by segment: rounding can land a hair outside [0, 1]
+        "localised_fraction": _fraction(within, total),
         "failures": failures,
         "failures_per_km": failures / (total / 1000.0) if total > 0 else None,
-        "blind_fraction_over_20m": over / total if total > 0 else None,
+        "blind_fraction_over_20m": _fraction(over, total),
         "distance_m": total,
     }
+
+
+def _fraction(part: float, total: float) -> float | None:
+    """``part / total`` clamped to [0, 1] (None without a total)."""
+    return float(min(1.0, max(0.0, part / total))) if total > 0 else None
 
 
 def dead_reckoning_curve(distances, localised, d_grid, weighting: str = "distance") -> np.ndarray:

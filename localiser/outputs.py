@@ -117,9 +117,6 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
 #: ``metrics.json`` keys that exist only with truth (:func:`truth_metrics`); dropped before a re-evaluation.
 TRUTH_KEYS = ("lateral_error_m", "heading_error_deg", "frames_evaluated", "false_fixes", "lateral_error_map_m",
               "heading_error_map_deg", "map_georeference_error_m", "bound_coverage_95", "bound_coverage_95_all")
-#: keys whose value the truth refines (distances along the truth instead of the odometry)
-_DISTANCE_KEYS = ("localised_fraction", "failures_per_km", "blind_fraction_over_20m", "distance_m", "first_fix_m",
-                  "relocalise_m")
 
 
 def run_truth(run):

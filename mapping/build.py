@@ -463,6 +463,21 @@ def vet_images(runs: list[SurveyRun], jobs: int = 1, progress: bool = True) -> l
     return bad
 
 
+def _check_resolutions(train: list[SurveyRun]) -> None:
+    """Every training run's images must have the reference run's size: a place's classifiers are mined
+    over HOG cells of one geometry (McManus et al. 2015, §3.2), and the map records one camera.  A DataError
+    naming the first run that differs (its ``run.toml``)."""
+    ref = train[0]
+    size = (ref.camera.width, ref.camera.height)
+    for run in train[1:]:
+        if (run.camera.width, run.camera.height) != size:
+            where = Path(run.root) / "run.toml" if run.root is not None else Path(run.name)
+            raise DataError(where, f"run {run.name!r} has {run.camera.width}x{run.camera.height} images but the "
+                                   f"reference run {ref.name!r} has {size[0]}x{size[1]}: a map is built from "
+                                   f"images of one size; resample the run's images (and scale its intrinsics) "
+                                   f"or leave it out")
+
+
 def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, scheduler: str | None = None,
               config: dict | None = None, progress: bool = True, places_subset=None,
               skip_corrupt: bool = False) -> dict:
@@ -490,6 +505,7 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     names = [r.name for r in train]
     if len(set(names)) != len(names):
         raise ValueError(f"training runs must have distinct names, got {names}")
+    _check_resolutions(train)             # before anything is written: a refused build leaves nothing
     bad = vet_images(train, jobs, progress)
     corrupt = [(run, i, exc) for run, b in zip(train, bad) for i, exc in b]
     if corrupt and not skip_corrupt:

@@ -328,3 +328,39 @@ def test_legacy_map_without_identity_is_read_and_updated(tiny, tmp_path):
     check_localisations(store, [read_localisation(ours)])            # accepted
     with pytest.raises(Exception, match="another map"):
         check_localisations(MapStore.open(root), [read_localisation(ours)])
+
+
+# ------------------------------------------------------------------------------------- 6. smaller cases
+def test_aerial_query_outside_every_tile_is_not_localised(tmp_path):
+    """Images of one tile localised on a tile set without it: none reported localised, each named with
+    the tile whose best match failed its checks; the same images on their own tile still localise."""
+    import shutil as sh
+
+    from aerial.geo import load_tiles
+    from aerial.localise import localise_sequence
+    from aerial.trials import write_sequence
+    from test_aerial import _write_tiles
+
+    root = _write_tiles(tmp_path / "tiles", n=2)
+    lines = (root / "map.csv").read_text().splitlines()
+
+    def subset(name, k):
+        d = tmp_path / name
+        d.mkdir()
+        sh.copy(root / f"t{k}.png", d / f"t{k}.png")
+        (d / "map.csv").write_text("\n".join([lines[0], lines[1 + k]]) + "\n")
+        return d
+
+    only, own = subset("only_t0", 0), subset("only_t1", 1)
+    rows = write_sequence(load_tiles(own), tmp_path / "seq", n=4, seed=2)     # images over t1 alone
+    seq = tmp_path / "seq"
+    on_t1 = rows
+    s = localise_sequence(only, seq, tmp_path / "out", progress=False)
+    assert s["images"] == len(on_t1) and s["localised"] == 0 and s["localised_fraction"] == 0.0
+    assert set(s["not_localised"]) == {r["image"] for r in on_t1}
+    assert all("t0.png" in why for why in s["not_localised"].values())
+    track = (tmp_path / "out" / "track.csv").read_text().splitlines()
+    head = track[0].split(",")
+    assert all(line.split(",")[head.index("localised")] == "0" for line in track[1:])
+    good = localise_sequence(own, seq, tmp_path / "good", progress=False)
+    assert good["localised"] == len(on_t1) and good["not_localised"] == {}
