@@ -364,3 +364,67 @@ def test_aerial_query_outside_every_tile_is_not_localised(tmp_path):
     assert all(line.split(",")[head.index("localised")] == "0" for line in track[1:])
     good = localise_sequence(own, seq, tmp_path / "good", progress=False)
     assert good["localised"] == len(on_t1) and good["not_localised"] == {}
+
+
+def test_build_map_with_a_run_of_another_resolution_exits_2_and_leaves_nothing(tmp_path, capsys):
+    from conftest import make_run
+    from surveys.geometry import Camera
+    from surveys.run import write_run
+
+    ref, images = make_run(n_frames=6, size=(64, 48))
+    write_run(ref, tmp_path / "ref", images=images)
+    small, simg = make_run(n_frames=6, size=(32, 24), seed=1)
+    small.name = "half"
+    small.camera = Camera(25.0, 25.0, 15.5, 11.5, 32, 24)        # the same camera at half resolution
+    write_run(small, tmp_path / "half", images=simg)
+    out = tmp_path / "map"
+    rc = main(["build-map", str(tmp_path / "ref"), str(tmp_path / "half"), "--reference", str(tmp_path / "ref"),
+               "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and str(tmp_path / "half" / "run.toml") in err and "'half'" in err and "32x24" in err
+    assert "Traceback" not in err and not out.exists()
+
+
+def test_check_reports_every_problem_of_a_run(tmp_path):
+    """A swapped frames.csv line does not stop the image checks; NaN and unsorted timestamps in one
+    odometry.csv are both reported."""
+    from conftest import make_run
+    from surveys.check import check_run
+    from surveys.run import write_run
+
+    run, images = make_run(n_frames=12)
+    write_run(run, tmp_path / "r", images=images)
+    root = tmp_path / "r"
+    lines = (root / "frames.csv").read_text().splitlines()
+    lines[3], lines[4] = lines[4], lines[3]                            # a swapped line
+    (root / "frames.csv").write_text("\n".join(lines) + "\n")
+    (root / run.frame_files[9]).write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 40)   # and a corrupt image later
+    odo = (root / "odometry.csv").read_text().splitlines()
+    row = odo[3].split(",")
+    odo[3] = ",".join(row[:2] + ["nan"] + row[3:])                     # NaN on line 4
+    odo[7], odo[8] = odo[8], odo[7]                                    # unsorted at line 9
+    (root / "odometry.csv").write_text("\n".join(odo) + "\n")
+    problems, stats = check_run(root)
+    found = {(Path(p.file).name, p.line, p.reason.split(":")[0].split(" (")[0]) for p in problems}
+    assert ("frames.csv", 5, "timestamps must strictly increase") in found
+    assert any(f == "000009.png" for f, _, _ in found), found
+    assert ("odometry.csv", 4, "NaN or infinite value") in found
+    assert ("odometry.csv", 9, "timestamps must strictly increase") in found
+    assert stats["images_checked"] == 12
+
+
+def test_fractions_are_clamped():
+    """Shares of a distance summed segment by segment can round to 1.0000000000000002: clamped."""
+    from localiser.evaluation import coverage_metrics
+
+    rng = np.random.default_rng(0)
+    seen = 0
+    for _ in range(4000):
+        n = rng.integers(10, 400)
+        s = np.cumsum(rng.uniform(0.01, 1.0, n)) + rng.uniform(0, 1e4)
+        if float(np.diff(s).sum()) / float(s[-1] - s[0]) <= 1.0:
+            continue
+        seen += 1
+        m = coverage_metrics(s, np.ones(n, bool))
+        assert m["localised_fraction"] == 1.0 and m["blind_fraction_over_20m"] == 0.0
+    assert seen, "no case rounding above 1 was drawn"
