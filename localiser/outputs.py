@@ -153,12 +153,10 @@ def _odometry_evaluation(result):
 def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> dict:
     """The part of ``metrics.json`` that needs no truth (see :func:`compute_metrics`).  ``truth``
     ``(times, poses)``, where given, only measures the distances (else the odometry does)."""
-    from .evaluation import coverage_metrics
-    from .uncertainty import bounds_from_result
-
     from surveys.geometry import interpolate_poses
 
-    from .evaluation import travelled
+    from .evaluation import coverage_metrics, travelled
+    from .uncertainty import bounds_from_result
 
     run = result.run
     tm = result.timings
