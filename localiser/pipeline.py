@@ -496,17 +496,22 @@ class Localiser:
                 raise
             return self.graph.estimate(float(self.graph.keyframes()[0][0]))
 
-    def covariance(self, t: float | None = None) -> np.ndarray:
-        """6x6 marginal covariance of the pose at time t (vehicle frame, GTSAM order), from the pose graph
-        (:meth:`localiser.posegraph.PoseGraph.covariance_at`); a time before the window gets the window's
-        first pose's, as :meth:`estimate` does."""
+    def estimate_with_covariance(self, t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Snapped ``T_world_vehicle`` at time t and the 6x6 marginal covariance of the pose there (vehicle
+        frame, GTSAM order; :meth:`localiser.posegraph.PoseGraph.estimate_with_covariance`).  A time
+        before the window gets the window's first pose, as :meth:`estimate` does."""
         with self._lock:
             try:
-                return self.graph.covariance_at(t)
+                T, C = self.graph.estimate_with_covariance(t)
             except ValueError:
                 if t is None:
                     raise
-                return self.graph.covariance_at(float(self.graph.keyframes()[0][0]))
+                T, C = self.graph.estimate_with_covariance(float(self.graph.keyframes()[0][0]))
+            return self.snapper.snap(T), C
+
+    def covariance(self, t: float | None = None) -> np.ndarray:
+        """6x6 marginal covariance of the pose at time t (see :meth:`estimate_with_covariance`)."""
+        return self.estimate_with_covariance(t)[1]
 
     def nearest_place(self, T_world_vehicle: np.ndarray) -> int:
         return self.store.nearest_place(T_world_vehicle, max_heading_diff=self._max_dyaw)

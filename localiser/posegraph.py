@@ -413,20 +413,25 @@ class PoseGraph:
             C = self._marginals[key] = self._smoother.marginalCovariance(key)
         return C
 
-    def covariance_at(self, t: float | None = None) -> np.ndarray:
-        """6x6 marginal covariance of the pose at time ``t`` (vehicle frame, GTSAM order: rotation, then
-        translation), the counterpart of :meth:`estimate`: the nearest keyframe at or before ``t``
-        (its marginal in the smoothed window) propagated through the odometry since."""
+    def estimate_with_covariance(self, t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`estimate` at time ``t`` and its 6x6 marginal covariance (vehicle frame, GTSAM order:
+        rotation, then translation): the nearest keyframe at or before ``t`` -- its smoothed pose and its
+        marginal in the window -- carried through the odometry since, in one pass."""
         self._require()
         if t is None or t >= self.latest_time:
-            return self.covariance()
+            return self._kf_pose @ self._acc_T, self.covariance()
         t = float(t)
         if t < self._kf_times[0]:
             raise ValueError(f"t={t} is before the window (oldest keyframe at {self._kf_times[0]})")
         i = bisect.bisect_right(self._kf_times, t) - 1
         T, C_odo = self._odometry(self._kf_times[i], t)
         Ad = _adjoint(invert(T))
-        return Ad @ self._marginal(self._kf_keys[i]) @ Ad.T + C_odo
+        T_k = self._smoother.calculateEstimatePose3(self._kf_keys[i]).matrix()
+        return T_k @ T, Ad @ self._marginal(self._kf_keys[i]) @ Ad.T + C_odo
+
+    def covariance_at(self, t: float | None = None) -> np.ndarray:
+        """6x6 marginal covariance of the pose at time ``t`` (see :meth:`estimate_with_covariance`)."""
+        return self.estimate_with_covariance(t)[1]
 
     def keyframes(self) -> tuple[np.ndarray, np.ndarray]:
         """Times (K,) and smoothed poses (K,4,4) of the keyframes in the window."""

@@ -216,8 +216,7 @@ class _Recorder:
                 self.poses[i] = np.nan
                 self.distance[i] = loc.distance_since_localisation
             return
-        T = loc.estimate(t)
-        C = loc.covariance(t)
+        T, C = loc.estimate_with_covariance(t)
         with self.lock:
             self.poses[i] = T
             self.covariances[i] = C
