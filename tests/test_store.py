@@ -227,12 +227,16 @@ def test_killed_build_resumes_to_identical_bytes(tmp_path, mode):
     with pytest.raises(DataError, match="interrupted"):
         MapStore.open(root)
 
+    killed_id = json.loads((root / "journal.jsonl").read_text().splitlines()[0])["header"]["map_id"]
     w = MapWriter(root, CAM, T_VC, PARAMS)
     done = [0, 1, 2, 3, 4] if mode == "torn_journal" else [0, 1]
-    assert w.written == done
+    assert w.written == done and w.map_id == killed_id     # the resumed build keeps the map's identity
     assert not list(root.rglob("*.tmp"))
     build(root)
-    assert folder_bytes(root) == reference
+    got = folder_bytes(root)
+    ma, mb = json.loads(got.pop("manifest.json")), json.loads(reference.pop("manifest.json"))
+    assert ma.pop("map_id") == killed_id != mb.pop("map_id") and ma == mb
+    assert got == reference
 
 
 def test_resume_refuses_different_settings(tmp_path):
