@@ -8,7 +8,8 @@ Reads ``scenesig localise`` outputs of runs with truth (``metrics.json``, ``fram
   within the stated ``lateral_bound_95_m``; ``bound_coverage_95_all`` over every frame with a pose;
 * ``lateral_bound_95_m_median`` over the localised frames;
 * ``raw_ratio_p95`` -- the 95th percentile of ``|error| / bound_raw`` over the localised frames, where
-  ``bound_raw`` is the bound without :data:`localiser.uncertainty.INFLATION`: the inflation that would
+  ``bound_raw`` is the bound without the inflation the output was written with (``bound_inflation`` in
+  its ``metrics.json``; 1 where absent, as before it existed): the inflation that would
   make the raw marginal's bounds cover exactly 95 % of them (how :data:`INFLATION` was chosen, on
   calibration runs that are not reported);
 * ``coverage_at`` -- the coverage the raw bounds times each factor of ``--factors`` would give.
@@ -46,10 +47,13 @@ def _errors(folder: Path):
     return metrics, np.abs(lat), frames["lateral_bound_95_m"], frames["localised"] > 0
 
 
-def _stats(err, bound, loc, inflation, factors) -> dict:
+def _raw(metrics, bound):
+    return bound / float(metrics.get("bound_inflation", 1.0))
+
+
+def _stats(err, bound, raw, loc, factors) -> dict:
     ok = np.isfinite(err) & np.isfinite(bound) & (bound > 0)
     lo = ok & loc
-    raw = bound / inflation
     ratio = err[lo] / raw[lo]
     return {
         "localised_frames": int(lo.sum()), "frames_with_pose": int(ok.sum()),
@@ -64,7 +68,6 @@ def _stats(err, bound, loc, inflation, factors) -> dict:
 
 def main(argv=None) -> int:
     from benchmarks._stages import emit_json
-    from localiser.uncertainty import INFLATION
 
     ap = argparse.ArgumentParser(prog="scenesig bench uncertainty", description=__doc__.splitlines()[0])
     ap.add_argument("outputs", nargs="+", help="'scenesig localise' output folders (runs with truth)")
@@ -72,16 +75,17 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the result JSON here")
     args = ap.parse_args(argv)
     factors = [float(f) for f in args.factors.split(",")]
-    per, pooled = {}, [[], [], []]
+    per, pooled = {}, [[], [], [], []]
     for folder in args.outputs:
         metrics, err, bound, loc = _errors(Path(folder))
+        raw = _raw(metrics, bound)
         key = f"{metrics['run']}/{metrics['method']}" + ("/no-gps" if metrics.get("oracle") == "none" else "")
-        per[key] = {**_stats(err, bound, loc, INFLATION, factors), "failures": metrics.get("failures"),
-                    "false_fixes": metrics.get("false_fixes")}
-        for acc, a in zip(pooled, (err, bound, loc)):
+        per[key] = {**_stats(err, bound, raw, loc, factors), "bound_inflation": metrics.get("bound_inflation", 1.0),
+                    "failures": metrics.get("failures"), "false_fixes": metrics.get("false_fixes")}
+        for acc, a in zip(pooled, (err, bound, raw, loc)):
             acc.append(a)
-    err, bound, loc = (np.concatenate(a) for a in pooled)
-    emit_json({"inflation": INFLATION, "runs": per, "pooled": _stats(err, bound, loc, INFLATION, factors)}, args.json)
+    err, bound, raw, loc = (np.concatenate(a) for a in pooled)
+    emit_json({"runs": per, "pooled": _stats(err, bound, raw, loc, factors)}, args.json)
     return 0
 
 

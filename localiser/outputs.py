@@ -24,6 +24,7 @@ from surveys.tum import read_tum, write_tum
 from surveys.validation import csv_header
 
 from .evaluation import ReferencePath, evaluate, summary
+from .uncertainty import INFLATION
 
 if TYPE_CHECKING:
     from .replay import ReplayResult
@@ -185,6 +186,7 @@ def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> d
         "blind_fraction_over_20m": cov["blind_fraction_over_20m"],
         **_oracle_metrics(result, dist),
         "lateral_bound_95_m_median": _median(bounds["lateral_bound_95_m"][np.asarray(result.localised, bool)]),
+        "bound_inflation": INFLATION,     # the calibrated factor on the marginal's sigmas (localiser.uncertainty)
         "ms_per_detection": tm.get("ms_per_detection"),
         "ms_per_solve": tm.get("ms_per_solve"),
         "ms_per_odometry_update": tm.get("ms_per_odometry_update"),
