@@ -1,9 +1,12 @@
-"""What ``scenesig localise`` writes, and reads back: ``trajectory.tum``, ``frames.csv``, ``metrics.json``.
+"""What ``scenesig localise`` writes, and reads back: ``trajectory.tum``, ``covariances.csv``,
+``frames.csv``, ``metrics.json``.
 
-:func:`compute_metrics` turns a :class:`localiser.replay.ReplayResult` into the ``metrics.json`` content
-(errors against the run's truth across the reference path through the map's places, see
-:mod:`localiser.evaluation`); :func:`write_outputs` writes the three files (and ``trajectory.png``,
-:mod:`localiser.plots`) atomically.  :data:`FRAMES_COLUMNS` is the one definition of ``frames.csv``'s
+:func:`compute_metrics` turns a :class:`localiser.replay.ReplayResult` into the ``metrics.json`` content:
+what the localiser knows (:func:`localisation_metrics`, no truth needed) and, where the run has truth,
+the evaluation against it (:func:`truth_metrics`: errors across the reference path through the map's
+places, see :mod:`localiser.evaluation`); :func:`write_outputs` writes the files (and ``trajectory.png``,
+:mod:`localiser.plots`) atomically, the trajectory first; :func:`evaluate_folder` runs the evaluation on a
+finished output folder (``scenesig evaluate``).  :data:`FRAMES_COLUMNS` is the one definition of ``frames.csv``'s
 columns, used by its writer and its reader :func:`read_frames_csv`.
 """
 from __future__ import annotations
