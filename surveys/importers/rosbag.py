@@ -216,38 +216,41 @@ def list_topics(bag) -> dict:
             "tf": {child: {"parent": p, "topic": t} for child, (p, t) in sorted(tf.items())}}
 
 
-def suggest_arguments(listing: dict) -> list[str]:
-    """Suggested ``scenesig import rosbag`` arguments for a :func:`list_topics` listing (one per line)."""
+def suggest_arguments(listing: dict) -> tuple[list[str], list[str]]:
+    """Suggested ``scenesig import rosbag`` arguments for a :func:`list_topics` listing, and notes on them."""
     topics = listing["topics"]
 
     def of(*types):
         return [t for t, d in topics.items() if d["type"] in types]
 
-    out = []
+    args, notes = [], []
     images = of(*IMAGE_TYPES)
-    for img in images:
+    if images:
+        img = images[0]
         ns = img.rsplit("/", 1)[0]
         infos = [t for t in of(CAMERA_INFO) if t.rsplit("/", 1)[0] in (ns, ns.rsplit("/", 1)[0])] or of(CAMERA_INFO)
-        args = f"--image-topic {img}" + (f" --camera-info-topic {infos[0]}" if infos else " --intrinsics FX,FY,CX,CY")
-        out.append(args)
-    if not images:
-        out.append("no sensor_msgs/Image or CompressedImage topic: this bag has no camera to import")
+        args += [f"--image-topic {img}", f"--camera-info-topic {infos[0]}" if infos else "--intrinsics FX,FY,CX,CY"]
+        if len(images) > 1:
+            notes.append("other image topics: " + ", ".join(images[1:]))
+    else:
+        notes.append("no sensor_msgs/Image or CompressedImage topic: this bag has no camera to import")
     poses = of(ODOMETRY, POSE_STAMPED, POSE_COV_STAMPED, TRANSFORM_STAMPED)
     odo = [t for t in poses if "odom" in t.lower()] or poses
     frames = listing.get("tf", {})
     if odo:
-        out.append(f"--odom-topic {odo[0]}")
+        args.append(f"--odom-topic {odo[0]}")
     elif "/tf" in topics and any(v["parent"] == "odom" for v in frames.values()):
-        out.append("--odom-topic /tf --odom-frame odom")
+        args.append("--odom-topic /tf --odom-frame odom")
     rest = [t for t in poses if t not in odo[:1]]
     if rest:
-        out.append(f"--gt-topic {rest[0]}   (INS / GPS-aided poses, if that is what it holds)")
+        args.append(f"--gt-topic {rest[0]}")
+        notes.append(f"--gt-topic {rest[0]}: if it holds INS / GPS-aided poses (build-map needs them)")
     if "/tf_static" not in topics:
-        out.append("--extrinsic X,Y,Z,QX,QY,QZ,QW   (no /tf_static: the camera's pose on the vehicle)")
-    return out
+        args.append("--extrinsic X,Y,Z,QX,QY,QZ,QW")
+        notes.append("no /tf_static: give the camera's pose on the vehicle with --extrinsic")
+    return args, notes
 
 
-# --------------------------------------------------------------------------------------- images
 # ROS encoding -> (channels, OpenCV conversion to BGR or None); Bayer names as cv_bridge maps them
 _RAW_ENCODINGS = {"mono8": (1, None), "8UC1": (1, None), "bgr8": (3, None), "8UC3": (3, None),
                   "rgb8": (3, "COLOR_RGB2BGR"), "bgra8": (4, "COLOR_BGRA2BGR"), "rgba8": (4, "COLOR_RGBA2BGR"),
