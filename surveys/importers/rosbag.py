@@ -521,7 +521,7 @@ def _scan(paths: list[Path], conf: dict):
                 bar.update()
                 msg = _deserialize(r, raw, c.msgtype, path, topic, k)
                 stamp = _stamp_ns(msg) if use_header else rec
-                where = f"{topic}: message {k} (stamp {_sec(stamp):.9f})"
+                where = f"{topic}: message {k} (stamp {stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d})"
                 if use_header and stamp == 0:
                     raise DataError(path, f"{topic}: message {k} has a zero header stamp (the driver did not fill "
                                           "it in); pass --stamps record to use the bag's record times")
@@ -682,9 +682,9 @@ def load_rosbag(bag, config: dict | None = None, progress: bool = False):
     gt_t = gt_P = truth_t = truth_P = None
     note, meta_frames = {}, {"vehicle_frame": base, "camera_frame": frames.frame_id}
     if conf["gt_topic"] is not None:
-        ns, gt_P, parent = _poses_for(conf["gt_topic"], pose_topics, series, tree, base, conf["gt_frame"], path,
-                                      "ground truth")
-        gt_t = ticks_to_seconds(ns)
+        gt_ns, gt_P, parent = _poses_for(conf["gt_topic"], pose_topics, series, tree, base, conf["gt_frame"], path,
+                                         "ground truth")
+        gt_t = ticks_to_seconds(gt_ns)
         meta_frames["groundtruth_frame"] = parent
     if conf["truth_topic"] is not None:
         ns, truth_P, _ = _poses_for(conf["truth_topic"], pose_topics, series, tree, base, conf["gt_frame"], path,
@@ -692,9 +692,9 @@ def load_rosbag(bag, config: dict | None = None, progress: bool = False):
         truth_t = ticks_to_seconds(ns)
     noise = float(conf["odometry_noise"])
     if conf["odom_topic"] is not None:
-        ns, odo_P, parent = _poses_for(conf["odom_topic"], pose_topics, series, tree, base, conf["odom_frame"], path,
-                                       "odometry")
-        odo_t = ticks_to_seconds(ns)
+        odo_ns, odo_P, parent = _poses_for(conf["odom_topic"], pose_topics, series, tree, base, conf["odom_frame"],
+                                           path, "odometry")
+        odo_t = ticks_to_seconds(odo_ns)
         meta_frames["odometry_frame"] = parent
         odo_source = "rosbag:" + conf["odom_topic"]
         if noise:
@@ -705,7 +705,7 @@ def load_rosbag(bag, config: dict | None = None, progress: bool = False):
             note = {"odometry": f"{conf['odom_topic']} in the bag ({pose_topics[conf['odom_topic']]})"}
     else:
         odo_P, odo_source, note = odometry_from_groundtruth(gt_P, conf, f"the ground truth topic {conf['gt_topic']}")
-        odo_t = gt_t
+        odo_t, odo_ns = gt_t, gt_ns
 
     frame_times = ticks_to_seconds(frames.stamps)
     # per role, not per topic: topic names are not TOML keys
@@ -744,9 +744,9 @@ def load_rosbag(bag, config: dict | None = None, progress: bool = False):
     }
     if gt_t is not None:
         metadata["groundtruth_gaps"] = find_gaps(gt_t, conf["gap_factor"])
-    rates = {"camera_hz": _rate(frames.stamps), "odometry_hz": _rate([_ns(t) for t in odo_t])}
+    rates = {"camera_hz": _rate(frames.stamps), "odometry_hz": _rate(odo_ns)}
     if gt_t is not None:
-        rates["ins_hz"] = _rate([_ns(t) for t in gt_t])
+        rates["ins_hz"] = _rate(gt_ns)
     name = conf["name"] or (paths[0].stem if paths[0].is_file() else paths[0].name)
     run = SurveyRun(
         name=name, conditions=list(conf["conditions"]), camera=camera, T_vehicle_camera=T_vc, rates=rates,
