@@ -49,6 +49,7 @@ def _map_files(root: Path) -> dict:
 def _pipeline(runs: dict, work: Path) -> Path:
     """build-map from the training runs, localise the fog run; returns ``work``."""
     train = [runs[c] for c in RUNS[:3]]
+    work.mkdir(parents=True, exist_ok=True)
     (work / "config.json").write_text(json.dumps(CONFIG))
     _cli("build-map", *train, "--reference", train[0], "--out", work / "map", "--jobs", "2",
          "--config", work / "config.json")
@@ -64,7 +65,13 @@ def _compare(a: Path, b: Path) -> dict:
     fa, fb = (p / "loc" / "frames.csv" for p in (a, b))
     ta, tb = (np.loadtxt(p / "loc" / "trajectory.tum", ndmin=2) for p in (a, b))
     same_traj = (a / "loc" / "trajectory.tum").read_bytes() == (b / "loc" / "trajectory.tum").read_bytes()
+    fr = [p.read_text().splitlines() for p in (fa, fb)]
+    mets = [json.loads((p / "loc" / "metrics.json").read_text()) for p in (a, b)]
+    keys = ("lateral_error_m", "heading_error_deg", "localised_fraction", "failures")
     return {"map_files": len(ma), "map_files_differing": differing,
+            "frames_csv_rows_differing": sum(x != y for x, y in zip(*fr)) + abs(len(fr[0]) - len(fr[1])),
+            "frames_csv_rows": len(fr[0]) - 1,
+            "metrics": [{k: m.get(k) for k in keys} for m in mets],
             "frames_csv_identical": fa.read_bytes() == fb.read_bytes(),
             "trajectory_tum_identical": same_traj,
             "trajectory_max_position_difference_m": (float(np.abs(ta[:, 1:4] - tb[:, 1:4]).max())
