@@ -417,6 +417,22 @@ def test_exported_localisation_reads_back(tmp_path, capsys, out, fmt):
     R = poses[k][:3, :3]
     np.testing.assert_allclose(bc[k][:3, :3], R @ B @ R.T, atol=1e-15)
     assert bc[k][5, 5] == 1e-4 and not bc[k][3:5].any()
+    # read with rosbags alone (not the importer's reader): the numbers trajectory.tum holds
+    from rosbags.highlevel import AnyReader
+
+    paths = [tmp_path / out]
+    with AnyReader(paths) as r:
+        conns = [c for c in r.connections if c.topic == "/scenesig/odometry"]
+        msgs = [r.deserialize(raw, c.msgtype) for c, _, raw in r.messages(connections=conns)]
+    got = np.array([[m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z,
+                     m.pose.pose.orientation.x, m.pose.pose.orientation.y, m.pose.pose.orientation.z,
+                     m.pose.pose.orientation.w] for m in msgs])
+    want = np.loadtxt(loc / "trajectory.tum")
+    np.testing.assert_array_equal([float(f"{m.header.stamp.sec}.{m.header.stamp.nanosec:09d}") for m in msgs],
+                                  want[:, 0])
+    np.testing.assert_array_equal(got[:, :3], want[:, 1:4])
+    np.testing.assert_allclose(got[:, 3:] * np.sign(got[:, 6:7] * want[:, 7:8]), want[:, 4:], atol=1e-15)
+    assert {m.header.frame_id for m in msgs} == {"map"} and {m.child_frame_id for m in msgs} == {"scenesig/base_link"}
     # and on /tf, the same poses
     tt, tp, _ = rb.read_bag_poses(tmp_path / out, "/tf")
     np.testing.assert_array_equal(tt, times)
