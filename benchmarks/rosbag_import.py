@@ -89,7 +89,8 @@ def main(argv=None) -> int:
                         best = (wall, cpu)
                     shutil.rmtree(out)
                 wall, cpu = best
-                results.append({"format": fmt, "images": images, "frames": len(run), "bag_mb": round(_size(bag) / 1e6, 1),
+                results.append({"format": fmt, "images": images, "frames": len(run),
+                                "bag_mb": round(_size(bag) / 1e6, 1),
                                 "seconds": round(wall, 3), "frames_per_second": round(len(run) / wall, 1),
                                 "frames_per_cpu_second": round(len(run) / cpu, 1)})
                 print(json.dumps(results[-1]), file=sys.stderr)

@@ -14,7 +14,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from build_world import tiny_runs
 from surveys.errors import DataError
-from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, invert, make_pose, pose_to_xyzquat, rot_z, xyzquat_to_pose
+from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, invert, make_pose, pose_to_xyzquat, rot_z
 from surveys.importers import rosbag as rb
 from surveys.run import read_run
 from surveys.tum import write_tum
@@ -91,7 +91,8 @@ class BagBuilder:
         self.path, self.fmt = path, fmt
         self.ts = get_typestore(Stores.ROS1_NOETIC if fmt == "ros1" else Stores.ROS2_HUMBLE)
         if "tf2_msgs/msg/TFMessage" not in self.ts.types:
-            self.ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
+            self.ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms",
+                                                "tf2_msgs/msg/TFMessage"))
         self.T = self.ts.types
         self.msgs = []
 
@@ -106,8 +107,9 @@ class BagBuilder:
 
     def pose(self, P):
         x, y, z, qx, qy, qz, qw = pose_to_xyzquat(P)
+        q = self.T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)
         return self.T["geometry_msgs/msg/Pose"](position=self.T["geometry_msgs/msg/Point"](x=x, y=y, z=z),
-                                               orientation=self.T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw))
+                                               orientation=q)
 
     def transform(self, stamp, parent, child, P):
         x, y, z, qx, qy, qz, qw = pose_to_xyzquat(P)
@@ -132,7 +134,8 @@ class BagBuilder:
     def camera_info(self, stamp, frame, w, h, K, D, P=None, model="plumb_bob"):
         cls = self.T["sensor_msgs/msg/CameraInfo"]
         arrays = {"d": np.asarray(D, float), "k": np.asarray(K, float).ravel(), "r": np.eye(3).ravel(),
-                  "p": (np.hstack([np.asarray(K, float), np.zeros((3, 1))]) if P is None else np.asarray(P, float)).ravel()}
+                  "p": (np.hstack([np.asarray(K, float), np.zeros((3, 1))]) if P is None
+                        else np.asarray(P, float)).ravel()}
         if "K" in cls.__dataclass_fields__:
             arrays = {k.upper(): v for k, v in arrays.items()}
         roi = self.T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
@@ -208,7 +211,8 @@ def hand_bag(path: Path, fmt="ros2", n=10, encoding="bgr8", compressed=False, od
             b.add("/cam/camera_info", b.camera_info(s, "camera_optical", W, H, K, D), s + LAG)
         P = _vehicle_pose(k)
         if odom == "pose":
-            b.add("/odom_pose", b.T["geometry_msgs/msg/PoseStamped"](header=b.header(s, "odom"), pose=b.pose(P)), s + LAG)
+            b.add("/odom_pose", b.T["geometry_msgs/msg/PoseStamped"](header=b.header(s, "odom"), pose=b.pose(P)),
+                  s + LAG)
         else:
             b.add("/tf", b.tf(s, "odom", "base_footprint", P @ invert(T_FOOT_BASE)), s + LAG)
         ins = make_pose(None, [100.0, 50.0, 0.0]) @ P @ invert(T_FOOT_BASE)

@@ -257,7 +257,8 @@ def run_rosbag(args) -> int:
         for r in [("topic", "type", "count", "rate (record times)")] + rows:
             print("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip())
         if listing["tf"]:
-            print("tf frames (parent -> child): " + ", ".join(f"{v['parent']} -> {c}" for c, v in listing["tf"].items()))
+            print("tf frames (parent -> child): "
+                  + ", ".join(f"{v['parent']} -> {c}" for c, v in listing["tf"].items()))
         args_, notes = suggest_arguments(listing)
         print("suggested:\n  scenesig import rosbag " + " ".join(listing["bag"]) + " " + " ".join(args_) + " --out RUN")
         for line in notes:
@@ -296,7 +297,10 @@ def run_export_rosbag(args) -> int:
     t0 = time.perf_counter()
     if (src / "run.toml").is_file():
         run = read_run(src)
-        write_run_bag(run, out, fmt, images=args.images, odometry_as=args.odometry_as, overwrite=args.overwrite)
+        try:
+            write_run_bag(run, out, fmt, images=args.images, odometry_as=args.odometry_as, overwrite=args.overwrite)
+        except ValueError as exc:
+            raise DataError(out, str(exc)) from None
         times, poses, topic, cov, what = run.odometry_times, run.odometry_poses, \
             ("/odom" if args.odometry_as == "odometry" else "/tf"), None, "survey run"
     elif (src / "trajectory.tum").is_file():

@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CorruptImageError, DataError
-from ..geometry import Camera, interpolate_poses, invert, make_pose, pose_to_xyzquat, xyzquat_to_pose
+from ..geometry import Camera, interpolate_poses, invert, pose_to_xyzquat, xyzquat_to_pose
 from ..io import atomic_folder, atomic_path
 from ..run import SurveyRun
 from ..settings import merge_settings
@@ -170,11 +170,6 @@ def _deserialize(reader, raw, msgtype: str, path: Path, topic: str, k: int):
         return reader.deserialize(raw, msgtype)
     except Exception as exc:  # rosbags raises several types for a malformed message
         raise DataError(path, f"{topic}: message {k} does not deserialise as {msgtype} ({exc})") from None
-
-
-def _stamp_ns(msg) -> int:
-    s = msg.header.stamp
-    return int(s.sec) * 1_000_000_000 + int(s.nanosec)
 
 
 def _sec(ns) -> float:
@@ -401,9 +396,11 @@ def _poses_of(msg, msgtype: str, path: Path, topic: str, k: int):
     """``[(header, parent frame, child frame or None, T_parent_child)]`` of a pose message."""
     if msgtype == ODOMETRY:
         p = msg.pose.pose
-        return [(msg.header, msg.header.frame_id, msg.child_frame_id, _pose_from(p.position, p.orientation, path, topic, k))]
+        return [(msg.header, msg.header.frame_id, msg.child_frame_id,
+                 _pose_from(p.position, p.orientation, path, topic, k))]
     if msgtype == POSE_STAMPED:
-        return [(msg.header, msg.header.frame_id, None, _pose_from(msg.pose.position, msg.pose.orientation, path, topic, k))]
+        return [(msg.header, msg.header.frame_id, None,
+                 _pose_from(msg.pose.position, msg.pose.orientation, path, topic, k))]
     if msgtype == POSE_COV_STAMPED:
         p = msg.pose.pose
         return [(msg.header, msg.header.frame_id, None, _pose_from(p.position, p.orientation, path, topic, k))]
@@ -454,7 +451,8 @@ def _camera_from_info(msg, path: Path, topic: str, rectified: bool) -> Camera:
         raise DataError(path, f"{topic}: binned images (binning {msg.binning_x}x{msg.binning_y}) are not supported")
     roi = msg.roi
     if int(roi.width) and (int(roi.width), int(roi.height)) != (w, h):
-        raise DataError(path, f"{topic}: region-of-interest images ({roi.width}x{roi.height} of {w}x{h}) are not supported")
+        raise DataError(path, f"{topic}: region-of-interest images ({roi.width}x{roi.height} of {w}x{h}) are not "
+                              "supported")
     if rectified:
         if P[0] <= 0 or P[5] <= 0:
             raise DataError(path, f"{topic}: CameraInfo P is not a projection for rectified images")
@@ -498,7 +496,9 @@ def _scan(paths: list[Path], conf: dict):
         for key, what in (("odom_topic", "odometry"), ("gt_topic", "ground truth"), ("truth_topic", "truth")):
             if conf[key] is not None:
                 pose_topics[conf[key]] = _check_topic(path, topics, conf[key], POSE_TYPES, what)
-        read = {conf["image_topic"], *pose_topics} | ({conf["camera_info_topic"]} if conf["camera_info_topic"] else set())
+        read = {conf["image_topic"], *pose_topics}
+        if conf["camera_info_topic"]:
+            read.add(conf["camera_info_topic"])
         # /tf_static for the extrinsic and frame changes; /tf only where a pose chain is asked of it
         for tf_topic in ("/tf_static", "/tf"):
             if tf_topic in topics and topics[tf_topic].msgtype == TF_MESSAGE and (tf_topic == "/tf_static"
@@ -520,7 +520,7 @@ def _scan(paths: list[Path], conf: dict):
             if topic == conf["image_topic"]:
                 bar.update()
                 msg = _deserialize(r, raw, c.msgtype, path, topic, k)
-                stamp = _stamp_ns(msg) if use_header else rec
+                stamp = _stamp_ns_of(msg.header) if use_header else rec
                 where = f"{topic}: message {k} (stamp {stamp // 1_000_000_000}.{stamp % 1_000_000_000:09d})"
                 if use_header and stamp == 0:
                     raise DataError(path, f"{topic}: message {k} has a zero header stamp (the driver did not fill "
@@ -556,7 +556,7 @@ def _scan(paths: list[Path], conf: dict):
                 frames.index.append(k)
                 frames.stamps.append(stamp)
                 frames.exts.append(ext)
-                img_offsets.append(rec - _stamp_ns(msg))
+                img_offsets.append(rec - _stamp_ns_of(msg.header))
             elif topic == conf["camera_info_topic"]:
                 msg = _deserialize(r, raw, c.msgtype, path, topic, k)
                 if info is None:
@@ -612,7 +612,8 @@ def _poses_for(topic, pose_topics, series, tree, base: str, chain_parent: str, p
         got = tree.series(chain_parent, base)
         if got is None:
             raise DataError(path, f"{topic}: no tf chain {chain_parent!r} -> {base!r} with a moving transform "
-                                  f"({what}); frames seen: " + ", ".join(f"{p}->{c}" for c, p in sorted(tree.parent.items())))
+                                  f"({what}); frames seen: "
+                              + ", ".join(f"{p}->{c}" for c, p in sorted(tree.parent.items())))
         return got[0], got[1], chain_parent
     s = series[topic]
     if not s.ns:
@@ -646,8 +647,9 @@ def load_rosbag(bag, config: dict | None = None, progress: bool = False):
         raise DataError(path, f"{conf['image_topic']}: no usable image (all {len(frames.corrupt)} corrupt)")
 
     # camera
-    rect = conf["rectified"] if conf["rectified"] is not None else "rect" in conf["image_topic"].split("/")[-1] \
-        or "rect" in conf["image_topic"]
+    rect = conf["rectified"]
+    if rect is None:  # image_transport names rectified streams image_rect, image_rect_color (.../compressed)
+        rect = any(part.startswith("image_rect") for part in conf["image_topic"].split("/"))
     if conf["intrinsics"] is not None:
         camera, intr_source = _intrinsics(conf["intrinsics"], frames.size), "given (--intrinsics)"
     elif info is not None:
@@ -1013,7 +1015,8 @@ def write_run_bag(run: SurveyRun, out, fmt: str = "ros2", images: str = "raw", o
 # --------------------------------------------------------------------------------------- localisations out
 _AXES = {"x": 0, "y": 1, "z": 2, "roll": 3, "pitch": 4, "yaw": 5, "heading": 5, "rx": 3, "ry": 4, "rz": 5}
 _BODY = {"longitudinal": 0, "lateral": 1, "vertical": 2}
-_COV_COLUMN = re.compile(r"^(var|cov|std|sigma)_([a-z]+?)(?:_(?:m|rad|m2|rad2))?(?:_([a-z]+?)(?:_(?:m|rad|m2|rad2))?)?$")
+_UNIT = r"(?:_(?:m|rad|m2|rad2))?"
+_COV_COLUMN = re.compile(rf"^(var|cov|std|sigma)_([a-z]+?){_UNIT}(?:_([a-z]+?){_UNIT})?$")
 
 
 def read_pose_covariances(path, times: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
