@@ -8,8 +8,9 @@ the importer stores as PNG: lossless), imports each back, then builds the map fr
 and localises the fog run against it, both from the original runs and from the imported ones, with the
 same commands (``scenesig build-map``, ``scenesig localise``). Reports whether the map's files (place files
 byte for byte, manifest) and the localisation's ``frames.csv`` and ``trajectory.tum`` are identical and,
-where they are not, the largest difference -- and repeats the original build with only the extrinsic passed
-through a quaternion, as ``/tf_static`` carries it, to tell that rounding from anything else.
+where they are not, the largest difference -- and repeats the original build with every pose and the
+extrinsic passed once through a quaternion, as ROS messages carry them (matrix -> quaternion -> matrix
+rounds in the last bit), to tell that rounding from anything else.
 """
 from __future__ import annotations
 
@@ -38,6 +39,15 @@ def _cli(*argv) -> float:
     if proc.returncode:
         raise SystemExit(f"scenesig {' '.join(map(str, argv))} failed:\n{proc.stderr[-3000:]}")
     return time.perf_counter() - t0
+
+
+def _through_quaternion(P):
+    """Poses as a ROS message carries them: matrix -> (x, y, z, qx, qy, qz, qw) -> matrix."""
+    import numpy as np
+
+    from surveys.geometry import pose_to_xyzquat, xyzquat_to_pose
+
+    return None if P is None else xyzquat_to_pose(pose_to_xyzquat(P)).reshape(np.shape(P))
 
 
 def _map_files(root: Path) -> dict:
@@ -85,7 +95,6 @@ def main(argv=None) -> int:
     ap.add_argument("--images", choices=["raw", "png", "jpeg"], default="raw")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
-    from surveys.geometry import pose_to_xyzquat, xyzquat_to_pose
     from surveys.importers.rosbag import import_rosbag, write_run_bag
     from surveys.run import read_run, write_run
     from surveys.sim.simulate import simulate
@@ -110,18 +119,21 @@ def main(argv=None) -> int:
             "gt_topic": "/ins", "truth_topic": "/truth", "name": run.name, "conditions": run.conditions},
             overwrite=True, progress=False)
         t_import += time.perf_counter() - t1
-        # control: the original run with only its extrinsic through a quaternion, as /tf_static carries it
-        q = dataclasses.replace(run, T_vehicle_camera=xyzquat_to_pose(pose_to_xyzquat(run.T_vehicle_camera)))
-        qext[cond] = write_run(q, work / "original_qext" / run.name, images=None, overwrite=True)
+        # control: the original run with its poses and extrinsic once through a quaternion, as a bag carries them
+        q = dataclasses.replace(run, T_vehicle_camera=_through_quaternion(run.T_vehicle_camera),
+                                odometry_poses=_through_quaternion(run.odometry_poses),
+                                groundtruth_poses=_through_quaternion(run.groundtruth_poses),
+                                truth_poses=_through_quaternion(run.truth_poses))
+        qext[cond] = write_run(q, work / "original_quaternions" / run.name, images=None, overwrite=True)
     a = _pipeline({c: r.root for c, r in originals.items()}, work / "out_original")
     b = _pipeline(imported, work / "out_bag")
     result = {"benchmark": "rosbag_roundtrip", "format": args.format, "images": args.images,
               "runs": {c: len(r) for c, r in originals.items()},
               "import_seconds": round(t_import, 2), "original_vs_bag": _compare(a, b)}
     if result["original_vs_bag"]["map_files_differing"] or not result["original_vs_bag"]["frames_csv_identical"]:
-        c = _pipeline(qext, work / "out_original_qext")
-        result["bag_vs_original_with_quaternion_extrinsic"] = _compare(c, b)
-        result["original_vs_original_with_quaternion_extrinsic"] = _compare(a, c)
+        c = _pipeline(qext, work / "out_original_quaternions")
+        result["bag_vs_original_through_quaternions"] = _compare(c, b)
+        result["original_vs_original_through_quaternions"] = _compare(a, c)
     result["seconds"] = round(time.perf_counter() - t0, 1)
     text = json.dumps(result, indent=1)
     print(text)

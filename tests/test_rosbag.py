@@ -480,3 +480,13 @@ def test_cli_list_and_import(source, tmp_path, capsys):
     # a survey run exported as a bag by the command reads back with its odometry
     assert _cli(["export", "rosbag", str(tmp_path / "r"), "--out", str(tmp_path / "again.mcap")]) == 0
     assert json.loads(capsys.readouterr().out)["source"] == "survey run"
+
+
+def test_record_times_far_from_header_stamps_are_stated(tmp_path, monkeypatch, caplog):
+    monkeypatch.setitem(globals(), "LAG", 200_000_000)  # a recorder 0.2 s behind the sensors
+    bag, _ = hand_bag(tmp_path / "b", n=5)
+    with caplog.at_level("WARNING", logger="surveys.importers.rosbag"):
+        run, _ = rb.load_rosbag(bag, HAND)
+    assert run.frame_times[0] == 1700000000.0  # the header stamp, not the record time
+    assert run.metadata["record_minus_header_s"]["odometry"]["median"] == pytest.approx(0.2)
+    assert "images: times are header stamps; the record times differ by 0.200 s" in caplog.text

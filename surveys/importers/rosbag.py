@@ -726,6 +726,10 @@ def load_rosbag(bag, config: dict | None = None, progress: bool = False):
             skipped[f"{roles[t]}_non_monotonic_stamp"] = s.non_monotonic
     if tree.skipped:
         skipped["tf_non_monotonic_stamp"] = tree.skipped
+    for role, st in offsets.items():
+        if conf["stamps"] == "header" and st and max(abs(st["min"]), abs(st["max"])) > 0.05:
+            log.warning("%s: %s: times are header stamps; the record times differ by %.3f s (median; %.3f to "
+                        "%.3f s)", path, role, st["median"], st["min"], st["max"])
     for what, n in skipped.items():
         log.warning("%s: %d message(s) left out (%s)", path, n, what.replace("_", " "))
     for k, stamp, reason in frames.corrupt[:5]:
