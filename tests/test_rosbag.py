@@ -490,3 +490,18 @@ def test_record_times_far_from_header_stamps_are_stated(tmp_path, monkeypatch, c
     assert run.frame_times[0] == 1700000000.0  # the header stamp, not the record time
     assert run.metadata["record_minus_header_s"]["odometry"]["median"] == pytest.approx(0.2)
     assert "images: times are header stamps; the record times differ by 0.200 s" in caplog.text
+
+
+def test_the_localisers_covariances_csv_layout(tmp_path):
+    """The localiser writes the planar (x, y, yaw) covariance's upper triangle in the map frame:
+    time,xx,xy,xyaw,yy,yyaw,yawyaw -- it lands in the x, y, yaw entries of the 6x6."""
+    loc, times, poses = _locdir(tmp_path, with_cov=False)
+    rows = ["time,xx,xy,xyaw,yy,yyaw,yawyaw"] + [f"{t:.9f},0.04,0.01,0.001,0.09,0.002,0.0004" for t in times[:-1]]
+    (loc / "covariances.csv").write_text("\n".join(rows) + "\n")
+    cov, have = rb.read_pose_covariances(loc / "covariances.csv", times, poses)
+    assert have.tolist() == [True] * (len(times) - 1) + [False]
+    want = np.zeros((6, 6))
+    for (a, b), v in {(0, 0): 0.04, (0, 1): 0.01, (0, 5): 0.001, (1, 1): 0.09, (1, 5): 0.002, (5, 5): 0.0004}.items():
+        want[a, b] = want[b, a] = v
+    np.testing.assert_array_equal(cov[0], want)
+    assert not cov[-1].any()

@@ -1029,7 +1029,9 @@ def read_pose_covariances(path, times: np.ndarray, poses: np.ndarray) -> tuple[n
     (N,) mask of the trajectory's poses that have one.
 
     The file is CSV with a header: a ``time`` (or ``timestamp``) column matching ``trajectory.tum``'s times
-    (to 1 µs), then columns named ``var_A``, ``std_A`` / ``sigma_A`` (squared) or ``cov_A_B``, each with an
+    (to 1 µs), then columns named ``AB`` (two axis names run together, the localiser's ``xx, xy, xyaw, yy,
+    yyaw, yawyaw``: the upper triangle of the planar covariance in the map frame), or ``var_A``, ``std_A`` /
+    ``sigma_A`` (squared) or ``cov_A_B``, each with an
     optional unit suffix (``_m``, ``_rad``, ``_m2``, ``_rad2``), where A, B are map-frame axes (``x``, ``y``,
     ``z``, ``roll``, ``pitch``, ``yaw`` / ``heading``) or vehicle axes (``longitudinal``, ``lateral``,
     ``vertical``), which are rotated into the map frame by the pose's rotation. Other columns (e.g. 95 %
@@ -1045,9 +1047,13 @@ def read_pose_covariances(path, times: np.ndarray, poses: np.ndarray) -> tuple[n
     cols = []
     for j, h in enumerate(header[1:], start=1):
         m = _COV_COLUMN.match(h)
-        if not m:
+        pair = [(h[:i], h[i:]) for i in range(1, len(h)) if h[:i] in _AXES and h[i:] in _AXES]
+        if pair:  # the localiser's own layout: "xx", "xy", "xyaw", "yy", "yyaw", "yawyaw" (map-frame axes)
+            kind, (a, b) = "cov", pair[0]
+        elif m:
+            kind, a, b = m.group(1), m.group(2), m.group(3) or m.group(2)
+        else:
             continue
-        kind, a, b = m.group(1), m.group(2), m.group(3) or m.group(2)
         if (a not in _AXES and a not in _BODY) or (b not in _AXES and b not in _BODY):
             continue
         if (a in _BODY) != (b in _BODY):
