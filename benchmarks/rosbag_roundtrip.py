@@ -10,7 +10,8 @@ same commands (``scenesig build-map``, ``scenesig localise``). Reports whether t
 byte for byte, manifest) and the localisation's ``frames.csv`` and ``trajectory.tum`` are identical and,
 where they are not, the largest difference -- and repeats the original build with every pose and the
 extrinsic passed once through a quaternion, as ROS messages carry them (matrix -> quaternion -> matrix
-rounds in the last bit), to tell that rounding from anything else.
+rounds in the last bit), and with ``--images raw|png`` the frames decoded and stored as PNG as the import
+stores them, to tell those two exactly explained changes from anything else.
 """
 from __future__ import annotations
 
@@ -124,7 +125,13 @@ def main(argv=None) -> int:
                                 odometry_poses=_through_quaternion(run.odometry_poses),
                                 groundtruth_poses=_through_quaternion(run.groundtruth_poses),
                                 truth_poses=_through_quaternion(run.truth_poses))
-        qext[cond] = write_run(q, work / "original_quaternions" / run.name, images=None, overwrite=True)
+        images = None
+        if args.images != "jpeg":  # and, for decoded images, the same frames as the import's lossless PNGs
+            import cv2
+
+            q = dataclasses.replace(q, frame_files=[f"images/{i:06d}.png" for i in range(len(run))])
+            images = (cv2.imencode(".png", run.image(i))[1].tobytes() for i in range(len(run)))
+        qext[cond] = write_run(q, work / "original_quaternions" / run.name, images=images, overwrite=True)
     a = _pipeline({c: r.root for c, r in originals.items()}, work / "out_original")
     b = _pipeline(imported, work / "out_bag")
     result = {"benchmark": "rosbag_roundtrip", "format": args.format, "images": args.images,
