@@ -520,3 +520,22 @@ def test_the_localisers_covariances_csv_layout(tmp_path):
         want[a, b] = want[b, a] = v
     np.testing.assert_array_equal(cov[0], want)
     assert not cov[-1].any()
+
+
+def test_cli_says_what_is_missing(tmp_path, capsys):
+    bag, _ = hand_bag(tmp_path / "b", n=3)
+    img, info, odo = ["--image-topic", "/cam/image_raw"], ["--camera-info-topic", "/cam/camera_info"], \
+        ["--odom-topic", "/odom_pose"]
+    for argv, what in ((odo + info, "--image-topic is required"), (img + info, "give --odom-topic, --gt-topic"),
+                       (img + odo, "give --camera-info-topic or --intrinsics")):
+        with pytest.raises(SystemExit) as exc:
+            _cli(["import", "rosbag", str(bag), *argv, "--out", str(tmp_path / "r")])
+        assert exc.value.code == 2 and what in capsys.readouterr().err
+    # --intrinsics and --extrinsic instead of CameraInfo and /tf_static
+    assert _cli(["import", "rosbag", str(bag), "--image-topic", "/cam/image_raw", "--odom-topic", "/odom_pose",
+                 "--base-frame", "base_link", "--intrinsics", "50,50,19.5,14.5", "--extrinsic",
+                 "1,0,2,-0.5,0.5,-0.5,0.5", "--out", str(tmp_path / "r")]) == 0
+    run = read_run(tmp_path / "r")
+    assert run.camera.K.tolist() == [[50, 0, 19.5], [0, 50, 14.5], [0, 0, 1]] and run.camera.size == (W, H)
+    np.testing.assert_allclose(run.T_vehicle_camera, make_pose(CAMERA_FROM_VEHICLE_AXES, [1, 0, 2]), atol=1e-12)
+    assert run.metadata["extrinsic"] == "given (--extrinsic)" and run.odometry_source == "rosbag:/odom_pose"

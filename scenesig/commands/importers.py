@@ -107,7 +107,7 @@ def register(groups) -> None:
     rb.add_argument("--skip-corrupt", action="store_true",
                     help="leave out (and count) image messages that do not decode, instead of stopping")
     _common(rb, _DRIFT + "the odometry topic as it is", out_required=False)
-    rb.set_defaults(_run=run_rosbag)
+    rb.set_defaults(_run=run_rosbag, _parser=rb)
 
     x = exp.add_parser("kapture", help="a survey run as a kapture folder (text format 1.1)",
                        description="Export a survey run as kapture: sensors, rigs, trajectories, records_camera, "
@@ -265,19 +265,19 @@ def run_rosbag(args) -> int:
             print("  " + line)
         return 0
     if args.out is None:
-        raise SystemExit("scenesig import rosbag: error: --out RUN is required (or --list)")
+        args._parser.error("--out RUN is required (or --list)")
     if args.image_topic is None:
-        raise SystemExit("scenesig import rosbag: error: --image-topic is required (--list shows the topics)")
+        args._parser.error("--image-topic is required (--list shows the topics)")
     conf = _conf(args, image_topic=args.image_topic, camera_info_topic=args.camera_info_topic,
                  odom_topic=args.odom_topic, gt_topic=args.gt_topic, truth_topic=args.truth_topic,
                  intrinsics=args.intrinsics, extrinsic=args.extrinsic, base_frame=args.base_frame,
                  odom_frame=args.odom_frame, gt_frame=args.gt_frame, stamps=args.stamps, rectified=args.rectified,
                  skip_corrupt=args.skip_corrupt)
     if args.odom_topic is None and args.gt_topic is None:
-        raise SystemExit("scenesig import rosbag: error: give --odom-topic, --gt-topic or both (a survey run needs "
-                         "odometry, and build-map needs INS poses)")
+        args._parser.error("give --odom-topic, --gt-topic or both (a survey run needs odometry, and build-map "
+                           "needs INS poses)")
     if args.camera_info_topic is None and args.intrinsics is None:
-        raise SystemExit("scenesig import rosbag: error: give --camera-info-topic or --intrinsics")
+        args._parser.error("give --camera-info-topic or --intrinsics (the camera's calibration)")
     return _summary(import_rosbag, args.bag, args, conf)
 
 
