@@ -539,3 +539,15 @@ def test_cli_says_what_is_missing(tmp_path, capsys):
     assert run.camera.K.tolist() == [[50, 0, 19.5], [0, 50, 14.5], [0, 0, 1]] and run.camera.size == (W, H)
     np.testing.assert_allclose(run.T_vehicle_camera, make_pose(CAMERA_FROM_VEHICLE_AXES, [1, 0, 2]), atol=1e-12)
     assert run.metadata["extrinsic"] == "given (--extrinsic)" and run.odometry_source == "rosbag:/odom_pose"
+
+
+def test_unsupported_encoding_is_an_error_even_when_skipping_corrupt_frames(tmp_path):
+    b = BagBuilder(tmp_path / "c")
+    b.add("/cam/image_raw", b.T["sensor_msgs/msg/Image"](header=b.header(T0, "camera_optical"), height=2, width=2,
+                                                       encoding="mono16", is_bigendian=0, step=4,
+                                                       data=np.zeros(8, np.uint8)), T0)
+    b.add("/odom_pose", b.T["geometry_msgs/msg/PoseStamped"](header=b.header(T0, "odom"), pose=b.pose(np.eye(4))), T0)
+    b.write()
+    with pytest.raises(DataError, match=r"message 0 .*image encoding 'mono16' not supported"):
+        rb.load_rosbag(tmp_path / "c", {**HAND, "skip_corrupt": True, "camera_info_topic": None,
+                                        "intrinsics": [1, 1, 1, 1], "gt_topic": None})

@@ -528,6 +528,9 @@ def _scan(paths: list[Path], conf: dict):
                 if frames.stamps and stamp <= frames.stamps[-1]:
                     counts[(topic, "non_monotonic")] = counts.get((topic, "non_monotonic"), 0) + 1
                     continue
+                if img_type == IMAGE and msg.encoding not in _RAW_ENCODINGS:  # the topic's format, not one bad frame
+                    raise DataError(path, f"{where}: image encoding {msg.encoding!r} not supported "
+                                          f"({', '.join(_RAW_ENCODINGS)} are)")
                 try:
                     if img_type == IMAGE:
                         frames.encodings.add(msg.encoding)
