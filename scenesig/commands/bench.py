@@ -25,6 +25,8 @@ BENCHMARKS = {
     "simcam": ("simcam", "Simulated fixed webcams (night, fog, snow...): a webcam-layout development folder."),
     "realism": ("realism", "ORB matches across simulated conditions (and GRIEF with --real)."),
     "kitti-import": ("kitti_import", "KITTI raw import speed, frames/s on one core (decode + write)."),
+    "rosbag-import": ("rosbag_import", "ROS bag import speed per format (ROS 1, ROS 2, MCAP; raw, JPEG), one core."),
+    "rosbag-roundtrip": ("rosbag_roundtrip", "Simulated runs -> bags -> import -> build-map/localise: same map and frames.csv?"),
     "kitti-drive": ("kitti_drive", "KITTI snippet end to end: camera-2 map; camera 3, darkened camera 3 localised."),
     "strict_decode": ("strict_decode", "Cost per VGA frame and catch rate of strict image decoding."),
     "aerial": ("aerial", "Monte-Carlo UAV-to-satellite-map matching (MRSM-CC and baselines)."),

@@ -7,6 +7,7 @@ overrides (:func:`surveys.settings.merge_settings`: a misspelt option is an erro
 * :mod:`.kapture` -- NAVER's kapture text format, both ways;
 * :mod:`.tum_rgbd` -- a TUM RGB-D sequence (``rgb.txt`` + ``groundtruth.txt``);
 * :mod:`.euroc` -- a EuRoC MAV / ASL folder (``mav0/camN`` + ``state_groundtruth_estimate0``);
+* :mod:`.rosbag` -- ROS 1 / ROS 2 (sqlite3, MCAP) bags, both ways (optional package ``rosbags``);
 * :mod:`.photometric` -- the darkening used to make a night-like replay of a day run.
 
 Every importer builds a :class:`surveys.run.SurveyRun` and hands it to :func:`surveys.run.write_run`,
