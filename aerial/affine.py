@@ -22,7 +22,7 @@ from itertools import combinations
 
 import numpy as np
 
-from surveys.settings import merge_settings
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["affine_from_triple", "apply_affine", "TripleFit", "best_consistent_triple",
            "scale_rotation", "default_config", "AffineEstimate", "ransac_affine"]

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from surveys.errors import DataError
-from surveys.validation import csv_header
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.validation import csv_header
 
 __all__ = ["Tile", "TileSet", "load_tiles", "EARTH_RADIUS_M", "MAP_COLUMNS"]
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from surveys.settings import merge_settings
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "LandmarkModel", "Region"]
 

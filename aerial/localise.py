@@ -30,11 +30,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aerial.geo import load_tiles
-from aerial.landmarks import LandmarkModel
-from aerial.mrsmcc import MRSMCC
-from surveys.errors import DataError
-from surveys.io import atomic_path, atomic_write_text
+from scenesig.aerial.geo import load_tiles
+from scenesig.aerial.landmarks import LandmarkModel
+from scenesig.aerial.mrsmcc import MRSMCC
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.io import atomic_path, atomic_write_text
 
 __all__ = ["localise_sequence", "IMAGE_SUFFIXES", "COLUMNS"]
 
@@ -47,7 +47,7 @@ COLUMNS = ("image", "tile", "x_px", "y_px", "lat", "lon", "east_m", "north_m", "
 def footprint_coverage(transform: np.ndarray, sensed_shape, tile_size, n: int = 11) -> float:
     """Share of the sensed image (an n x n grid of points over it) that the sensed -> tile affine maps
     inside the tile (``tile_size`` = (width, height) px)."""
-    from aerial.affine import apply_affine
+    from scenesig.aerial.affine import apply_affine
 
     h, w = sensed_shape[:2]
     gx, gy = np.meshgrid(np.linspace(0, w - 1, n), np.linspace(0, h - 1, n))
@@ -101,7 +101,7 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
     prior_radius_m : float
         Uncertainty of the prior (and of each previous estimate as the next prior).
     config : dict, optional
-        Overrides of :data:`aerial.mrsmcc.default_config`.
+        Overrides of :data:`scenesig.aerial.mrsmcc.default_config`.
     min_ncc : float
         An estimate near the prior whose whole-image NCC is lower triggers a search of every tile;
         a final estimate below it is not a localisation (``localised`` 0, no position).  An estimate
@@ -117,7 +117,7 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
     dict
         The summary (also ``OUT/summary.json``).
     """
-    from aerial.mrsmcc import default_config as mrsmcc_config
+    from scenesig.aerial.mrsmcc import default_config as mrsmcc_config
 
     tiles = load_tiles(tiles_dir)
     search_ncc = float({**mrsmcc_config, **(config or {})}["attitude_min_ncc"])

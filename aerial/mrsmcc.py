@@ -9,19 +9,19 @@ The sensed image is located on a geo-referenced reference image by iterating the
    by each hypothesis, matched over the reference at quarter resolution.  Once an estimate exists,
    every region is resampled into the reference's orientation and scale before it is matched.
 2. **Colour constancy** (Step 2, §3.1) -- local exact histogram matching
-   (:func:`signatures.colour.local_exact_histogram_match`) on a 5 x 5 grid of windows, each against
+   (:func:`scenesig.signatures.colour.local_exact_histogram_match`) on a 5 x 5 grid of windows, each against
    the reference sub-image that the current estimate puts under it.  Before any estimate exists the
    only prior is "somewhere on this reference", and the whole sensed image is matched to the whole
    reference's histogram (one window; or to the window around a given rough prior).
 3. **Landmark regions** (Step 3, §3.2) -- 64 x 64 sub-regions chosen by colour-histogram landmark
-   likelihoods (:mod:`aerial.landmarks`).
+   likelihoods (:mod:`scenesig.aerial.landmarks`).
 4. **Multi-region NCC** (Step 4) -- with more than three regions, each is registered on the
    reference by NCC: near where the current estimate (or the attitude prior) predicts it, or --
    without one, or when the attitude prior gives no consistent triple -- over the whole reference
    (or the rough prior's window) at half resolution by FFT, keeping several peaks, refined at full
    resolution.  With three or fewer regions, or no consistent triple, the whole sensed image is
    matched instead (attitude-compensated, or plain SISM) and the iteration ends (Step 4 -> 8).
-5. **Affine from the best-consistent triple** (Steps 5-6, §3.4) -- :mod:`aerial.affine`.
+5. **Affine from the best-consistent triple** (Steps 5-6, §3.4) -- :mod:`scenesig.aerial.affine`.
 6. **Iterate** (Step 7) until the located centre moves less than ``epsilon_px`` (eq. 1), at most
    ``max_iterations`` times.
 
@@ -44,14 +44,14 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from aerial import affine as affmod
-from aerial.landmarks import LandmarkModel
-from aerial.ncc import local_match
-from aerial.sism import ReferenceImage
-from aerial.trials import sensed_centre
-from signatures.colour import (exact_histogram_match, local_exact_histogram_match,
+from scenesig.aerial import affine as affmod
+from scenesig.aerial.landmarks import LandmarkModel
+from scenesig.aerial.ncc import local_match
+from scenesig.aerial.sism import ReferenceImage
+from scenesig.aerial.trials import sensed_centre
+from scenesig.signatures.colour import (exact_histogram_match, local_exact_histogram_match,
                                match_histograms)
-from surveys.settings import merge_settings
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "MRSMCC", "Localisation", "translation_affine"]
 

@@ -5,7 +5,7 @@ sensed image may be rotated; upright descriptors would not match beyond a few de
 more features on the reference than on the sensed image (it covers about fifteen times the area),
 2-NN matching with Lowe's ratio 0.8, and an affine transform fitted by RANSAC
 (``cv2.estimateAffine2D``, 3-px reprojection threshold) -- the sensed centre mapped by it is the
-estimate.  Extraction and descriptor matching are :mod:`signatures.pointfeatures`'; the
+estimate.  Extraction and descriptor matching are :mod:`scenesig.signatures.pointfeatures`'; the
 reference's features are computed once per tile.
 """
 from __future__ import annotations
@@ -13,10 +13,10 @@ from __future__ import annotations
 import time
 import numpy as np
 
-from aerial.affine import AffineEstimate, ransac_affine
-from aerial.trials import sensed_centre
-from signatures import pointfeatures as pf
-from surveys.settings import merge_settings
+from scenesig.aerial.affine import AffineEstimate, ransac_affine
+from scenesig.aerial.trials import sensed_centre
+from scenesig.signatures import pointfeatures as pf
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "PointMatcher"]
 

@@ -2,7 +2,7 @@
 
 McManus et al. 2015 (§3.2) mine place-dependent classifiers from many images of a place under
 different appearance.  A satellite tile comes in one appearance only, so -- as the scene-signature
-heading method does for a single map image (:func:`signatures.heading.augment`) -- the bank is
+heading method does for a single map image (:func:`scenesig.signatures.heading.augment`) -- the bank is
 mined from augmented copies of the tile: colour casts, gamma, contrast, snow-like whitening, blur,
 noise and small known shifts.  Candidate shapes are squares of about ``square_px`` on a dense grid
 over the tile (the sensed image covers a ninth of a tile, so the place-sized default template would
@@ -24,13 +24,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aerial.affine import AffineEstimate, ransac_affine
-from aerial.trials import sensed_centre
-from signatures import mining
-from signatures.bank import Bank
-from signatures.heading import augment
-from surveys.io import atomic_path
-from surveys.settings import merge_settings
+from scenesig.aerial.affine import AffineEstimate, ransac_affine
+from scenesig.aerial.trials import sensed_centre
+from scenesig.signatures import mining
+from scenesig.signatures.bank import Bank
+from scenesig.signatures.heading import augment
+from scenesig.surveys.io import atomic_path
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "SignatureMatcher"]
 

@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from aerial.ncc import ReferenceNCC, local_match, to_gray
-from aerial.trials import sensed_centre
-from signatures.colour import channel_histograms
-from surveys.settings import merge_settings
+from scenesig.aerial.ncc import ReferenceNCC, local_match, to_gray
+from scenesig.aerial.trials import sensed_centre
+from scenesig.signatures.colour import channel_histograms
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "ReferenceImage", "SISM", "SismResult"]
 

@@ -31,8 +31,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from surveys.io import atomic_path, atomic_write_text
-from surveys.settings import merge_settings
+from scenesig.surveys.io import atomic_path, atomic_write_text
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["PHOTOMETRIC", "GEOMETRY", "Trial", "make_trial", "make_trials", "photometric_change",
            "sensed_centre", "cut_sensed", "write_sequence"]

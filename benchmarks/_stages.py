@@ -103,7 +103,7 @@ def emit_json(result: dict, path=None) -> None:
     """Print a benchmark's result as JSON and, with ``path``, write it there atomically."""
     import json
 
-    from surveys.io import atomic_write_text
+    from scenesig.surveys.io import atomic_write_text
 
     text = json.dumps(result, indent=1)
     print(text)
@@ -119,7 +119,7 @@ def read_config(path):
     import json
     from pathlib import Path
 
-    from surveys.errors import DataError
+    from scenesig.surveys.errors import DataError
 
     try:
         return json.loads(Path(path).read_text())

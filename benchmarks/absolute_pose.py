@@ -1,10 +1,10 @@
 """Robust absolute-pose estimators on synthetic 2D-3D matches: speed, accuracy, success with outliers.
 
-``python -m benchmarks.absolute_pose [--matches 300] [--outliers 0.7] [--repeats 100] [--json OUT]``
-prints JSON: per estimator (:data:`localiser.absolute_pose.ESTIMATORS`) the median and 95th
+``python -m scenesig.benchmarks.absolute_pose [--matches 300] [--outliers 0.7] [--repeats 100] [--json OUT]``
+prints JSON: per estimator (:data:`scenesig.localiser.absolute_pose.ESTIMATORS`) the median and 95th
 percentile milliseconds per call, the median translation (m) and rotation (deg) errors against the
 true pose, the share of problems solved (translation error < 0.5 m and rotation < 1 deg), and the
-median RANSAC iterations.  Problems come from :func:`localiser.synthetic.synthetic_problem` (landmarks
+median RANSAC iterations.  Problems come from :func:`scenesig.localiser.synthetic.synthetic_problem` (landmarks
 8-60 m ahead, 1-px keypoint noise, 5-cm landmark noise, outliers uniform over the image).
 """
 from __future__ import annotations
@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from localiser.absolute_pose import ESTIMATORS, estimate
-from localiser.solver import pose_log
-from localiser.synthetic import synthetic_problem
-from surveys.geometry import invert
+from scenesig.localiser.absolute_pose import ESTIMATORS, estimate
+from scenesig.localiser.solver import pose_log
+from scenesig.localiser.synthetic import synthetic_problem
+from scenesig.surveys.geometry import invert
 
 
 def benchmark(n_matches: int = 300, outliers: float = 0.7, repeats: int = 100,
@@ -56,7 +56,7 @@ def benchmark(n_matches: int = 300, outliers: float = 0.7, repeats: int = 100,
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.absolute_pose", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m scenesig.benchmarks.absolute_pose", description=__doc__.splitlines()[0])
     ap.add_argument("--matches", type=int, default=300)
     ap.add_argument("--outliers", type=float, default=0.7)
     ap.add_argument("--repeats", type=int, default=100)

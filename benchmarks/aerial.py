@@ -2,7 +2,7 @@
 
 Per trial a 400 x 300 sensed image is cut from a random tile at a random position, scaled by
 U[0.9, 1.1], rotated by U[-10, 10] deg and given a random photometric change
-(:mod:`aerial.trials` states the ranges); every method estimates where the sensed centre lies on
+(:mod:`scenesig.aerial.trials` states the ranges); every method estimates where the sensed centre lies on
 that tile, and a trial succeeds when the estimate is within 25 px (the paper's criterion).
 
 Methods: ``mrsmcc`` (MRSM-CC), ``mrsm`` (the same without colour constancy), ``sism`` (whole-image
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from surveys.io import atomic_path, atomic_write_text
+from scenesig.surveys.io import atomic_path, atomic_write_text
 
 METHODS = ("mrsmcc", "mrsm", "sism", "sift", "orb", "signatures")
 SUCCESS_PX = 25.0
@@ -45,10 +45,10 @@ SUCCESS_PX = 25.0
 
 def _setup(method: str, images, landmarks, cache_dir):
     """One fitted estimator per tile; returns (list, CPU seconds)."""
-    from aerial.mrsmcc import MRSMCC
-    from aerial.pointmatch import PointMatcher
-    from aerial.signatures import SignatureMatcher
-    from aerial.sism import SISM
+    from scenesig.aerial.mrsmcc import MRSMCC
+    from scenesig.aerial.pointmatch import PointMatcher
+    from scenesig.aerial.signatures import SignatureMatcher
+    from scenesig.aerial.sism import SISM
 
     t0 = time.process_time()
     if method in ("mrsmcc", "mrsm"):
@@ -86,9 +86,9 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
     import cv2
     from threadpoolctl import threadpool_limits
 
-    from aerial.geo import load_tiles
-    from aerial.landmarks import LandmarkModel
-    from aerial.trials import GEOMETRY, PHOTOMETRIC, make_trial
+    from scenesig.aerial.geo import load_tiles
+    from scenesig.aerial.landmarks import LandmarkModel
+    from scenesig.aerial.trials import GEOMETRY, PHOTOMETRIC, make_trial
 
     methods = list(dict.fromkeys(methods))
     bad = [m for m in methods if m not in METHODS]
@@ -165,7 +165,7 @@ def plot_example(est, trial, tile_name: str, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from aerial.affine import apply_affine
+    from scenesig.aerial.affine import apply_affine
 
     loc = est.locate(trial.image)
     cc = est.colour_constancy(trial.image, loc.transform)

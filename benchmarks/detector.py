@@ -8,10 +8,10 @@ import json
 
 import numpy as np
 
-from localiser.detector import Detector
-from mapping.store import MapStore
-from surveys.geometry import invert
-from surveys.run import read_run
+from scenesig.localiser.detector import Detector
+from scenesig.mapping.store import MapStore
+from scenesig.surveys.geometry import invert
+from scenesig.surveys.run import read_run
 
 __all__ = ["benchmark", "main"]
 

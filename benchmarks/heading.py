@@ -4,21 +4,21 @@ Protocol (Krajník et al., "Image features for visual teach-and-repeat navigatio
 environments", RAS 2017): for every ordered (map image, live image) pair of one place, estimate the
 horizontal image displacement map -> live and count it correct when it is within ``tolerance_px``
 (20) of the ground truth.  The error rate is incorrect / total; a pair without an estimate is
-incorrect.  Pairs come from :meth:`surveys.grief.GriefDataset.pairs` (660 on stromovka, 101 on
+incorrect.  Pairs come from :meth:`scenesig.surveys.grief.GriefDataset.pairs` (660 on stromovka, 101 on
 season).
 
 Methods
 -------
 ``orb``, ``sift`` (also ``rootsift``)
     OpenCV, the 1600 strongest upright keypoints per image, brute-force 2-NN with ratio test 0.9,
-    histogram voting of the horizontal offsets in 20-px bins (see :mod:`signatures.pointfeatures`).
+    histogram voting of the horizontal offsets in 20-px bins (see :mod:`scenesig.signatures.pointfeatures`).
     ``--baseline-preset grief`` (default) slides the bin over all positions and takes the mean
     offset inside it, as GRIEF's own ``match_all`` does, and drops SIFT's duplicate keypoints (one
     per orientation peak, identical once upright) before choosing the 1600.  ``plain`` reproduces
     a straightforward re-implementation: fixed bins over [-width, width], bin-centre estimate,
     duplicates kept -- it gives the reference numbers of ``../shared/data/README.md`` exactly.
 ``signatures``
-    :class:`signatures.heading.SignatureHeading` (leave-one-session-out banks for the sessions
+    :class:`scenesig.signatures.heading.SignatureHeading` (leave-one-session-out banks for the sessions
     layout; augmented map images for the sequence layout).
 
 Output: a JSON file ``{"dataset", "pairs", "tolerance_px", "methods": {NAME: {"error_rate",
@@ -41,12 +41,12 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks._stages import read_config
+from scenesig.benchmarks._stages import read_config
 from scenesig.commands._types import positive_int
-from signatures import pointfeatures as pf
-from surveys.errors import DataError
-from surveys.io import atomic_path, atomic_write_text
-from surveys.grief import GriefDataset, GriefPair, load
+from scenesig.signatures import pointfeatures as pf
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.io import atomic_path, atomic_write_text
+from scenesig.surveys.grief import GriefDataset, GriefPair, load
 
 __all__ = ["default_config", "BASELINE_PRESETS", "METHODS", "MethodResult", "run_benchmark",
            "run_point_features", "run_signatures", "score", "make_figure", "run_from_args", "main"]
@@ -236,8 +236,8 @@ def _training_description(dataset: GriefDataset, cfg: dict, single: bool = False
 def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 1,
                    progress: bool = True, config: dict | None = None,
                    single: bool = False) -> MethodResult:
-    """Estimate every pair with the scene-signature method (:mod:`signatures.heading`)."""
-    from signatures.heading import SignatureHeading
+    """Estimate every pair with the scene-signature method (:mod:`scenesig.signatures.heading`)."""
+    from scenesig.signatures.heading import SignatureHeading
 
     t0 = time.perf_counter()
     detail, extra = {}, {}
@@ -399,7 +399,7 @@ def run_benchmark(dataset_path, methods=("signatures", "orb", "sift"), json_path
         Only the first N protocol pairs (quick checks; the full protocol is the default).
     single : bool
         Signatures: every bank from the pair's map image alone plus synthesised copies
-        (:class:`signatures.heading.SignatureHeading`'s ``single``); the sequence layout always is.
+        (:class:`scenesig.signatures.heading.SignatureHeading`'s ``single``); the sequence layout always is.
     map_sessions : sequence of int, optional
         Only the pairs whose map image is from these sessions (0-based).
 

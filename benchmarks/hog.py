@@ -9,9 +9,9 @@ import json
 import cv2
 import numpy as np
 
-from benchmarks._timing import median_ms
-from signatures.hog import build_pyramid, fhog
-from surveys.errors import DataError
+from scenesig.benchmarks._timing import median_ms
+from scenesig.signatures.hog import build_pyramid, fhog
+from scenesig.surveys.errors import DataError
 
 __all__ = ["main"]
 

@@ -1,17 +1,17 @@
 """The first real drive end to end: a map from KITTI camera 2 (one run), camera 3 and a darkened camera 3
 localised against it by signatures and the point-feature baselines; prints JSON.
 
-    python -m benchmarks.kitti_drive [DRIVE_DIR] [--work DIR] [--methods signatures,orb,sift] [--jobs 2]
+    python -m scenesig.benchmarks.kitti_drive [DRIVE_DIR] [--work DIR] [--methods signatures,orb,sift] [--jobs 2]
                                      [--map-photometric dusk,night] [--json OUT]
 
 Camera 3 looks at the same street at the same time, 0.54 m to the right of camera 2 with its own
 extrinsic; the vehicle (OXTS/IMU) trajectory is the same for both, so the errors against OXTS measure
 the geometry -- camera model, extrinsics, landmark depths, pose solve -- on real images. The night
-replay is camera 3 darkened by :mod:`surveys.importers.photometric` (a photometric transform of day
+replay is camera 3 darkened by :mod:`scenesig.surveys.importers.photometric` (a photometric transform of day
 images, not real night). Targets (camera 3): lateral median <= 0.3 m, heading median <= 1 deg, no failure.
 
 The map is built from the camera-2 run alone (the protocol). ``--map-photometric`` adds photometric
-copies of that same run (same camera, same instant, :data:`surveys.importers.photometric.PRESETS`) as
+copies of that same run (same camera, same instant, :data:`scenesig.surveys.importers.photometric.PRESETS`) as
 extra training runs, for a map builder that needs several runs per place; the JSON says which were used.
 Exit status 0 when every step ran (whether or not the targets are met), 3 when the map could not be built.
 """
@@ -37,7 +37,7 @@ def _summary(m: dict) -> dict:
 
 def _emit(result: dict, json_path) -> None:
     """Print the JSON, and write it atomically to ``json_path`` if given."""
-    from surveys.io import atomic_write_text
+    from scenesig.surveys.io import atomic_write_text
 
     text = json.dumps(result, indent=1)
     print(text)
@@ -47,7 +47,7 @@ def _emit(result: dict, json_path) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.kitti_drive", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m scenesig.benchmarks.kitti_drive", description=__doc__.splitlines()[0])
     ap.add_argument("drive", nargs="?", default=str(DEFAULT_DRIVE))
     ap.add_argument("--work", default=None, help="keep runs, map and replays here (default: a temporary folder)")
     ap.add_argument("--methods", default="signatures,orb,sift")
@@ -61,10 +61,10 @@ def main(argv=None) -> int:
     if not drive.is_dir():
         print(f"kitti_drive: drive not found: {drive} (the shared data is expected at ../shared/data)", file=sys.stderr)
         return 2
-    from localiser.replay import localise
-    from mapping.build import build_map
-    from surveys.importers.kitti_raw import import_kitti_raw
-    from surveys.run import read_run
+    from scenesig.localiser.replay import localise
+    from scenesig.mapping.build import build_map
+    from scenesig.surveys.importers.kitti_raw import import_kitti_raw
+    from scenesig.surveys.run import read_run
 
     tmp = None if args.work else tempfile.TemporaryDirectory()
     work = Path(args.work or tmp.name)

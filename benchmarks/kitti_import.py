@@ -1,6 +1,6 @@
 """Import speed of a KITTI raw drive (decode + write), one core: prints JSON.
 
-    python -m benchmarks.kitti_import [DRIVE_DIR] [--camera 2] [--repeats 3] [--json OUT]
+    python -m scenesig.benchmarks.kitti_import [DRIVE_DIR] [--camera 2] [--repeats 3] [--json OUT]
 
 Each repeat imports the drive into a fresh temporary run (every image decoded once to check it,
 OXTS and calibration parsed, the run written atomically) with the process pinned to one CPU and
@@ -22,7 +22,7 @@ DEFAULT_DRIVE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" /
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.kitti_import", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m scenesig.benchmarks.kitti_import", description=__doc__.splitlines()[0])
     ap.add_argument("drive", nargs="?", default=str(DEFAULT_DRIVE), help="KITTI raw drive (default: the shared snippet)")
     ap.add_argument("--camera", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=3)
@@ -34,7 +34,7 @@ def main(argv=None) -> int:
         return 2
     import cv2
 
-    from surveys.importers.kitti_raw import import_kitti_raw
+    from scenesig.surveys.importers.kitti_raw import import_kitti_raw
 
     cv2.setNumThreads(1)
     if hasattr(os, "sched_setaffinity"):
@@ -59,7 +59,7 @@ def main(argv=None) -> int:
     text = json.dumps(result, indent=1)
     print(text)
     if args.json:
-        from surveys.io import atomic_write_text
+        from scenesig.surveys.io import atomic_write_text
 
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.json, text + "\n")

@@ -9,8 +9,8 @@ import json
 import cv2
 import numpy as np
 
-from signatures.mining import mine_place
-from surveys.errors import DataError
+from scenesig.signatures.mining import mine_place
+from scenesig.surveys.errors import DataError
 
 __all__ = ["main", "read_images"]
 

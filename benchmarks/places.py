@@ -1,9 +1,9 @@
 """Place recognition on real appearance change: ``scenesig bench places DATASET --methods ... --json OUT``.
 
-The retrieval a localiser without GPS does at start-up (:mod:`localiser.relocalise`), on real images
+The retrieval a localiser without GPS does at start-up (:mod:`scenesig.localiser.relocalise`), on real images
 instead of the simulator: given a live image, which place of the map is it?
 
-Protocols (GRIEF data, ``../shared/data/grief``; :mod:`surveys.grief`)
+Protocols (GRIEF data, ``../shared/data/grief``; :mod:`scenesig.surveys.grief`)
 
 ``season`` (sequence layout)
     the 101 summer frames (``season_00``) are the map, one place each; the 101 winter frames
@@ -18,10 +18,10 @@ Methods (one harness; every method sees the same map images and queries)
 
 ``signatures``
     what a scenesig map stores, and the localiser's own retrieval: the compact whole-image
-    descriptors of :mod:`signatures.globaldesc` shortlist ``shortlist`` places, and each
+    descriptors of :mod:`scenesig.signatures.globaldesc` shortlist ``shortlist`` places, and each
     shortlisted place's bank verifies: it is searched across the whole query image (rows near its
     trained row) and its classifiers vote for a horizontal displacement (the GRIEF analogue of the
-    pose solve, :func:`signatures.heading.vote_displacement`); the place whose votes agree best
+    pose solve, :func:`scenesig.signatures.heading.vote_displacement`); the place whose votes agree best
     (the share of vote weight in the densest 20-px window) wins; places outside the shortlist keep
     their descriptor order behind the shortlist.  Banks are mined as in ``bench heading`` -- on
     season from augmented copies of the summer image only, on stromovka leave-one-session-out (never
@@ -29,7 +29,7 @@ Methods (one harness; every method sees the same map images and queries)
     (96 shapes instead of 296; mining a full bank per place for all 101 season places takes hours on
     two cores).  Single image: no neighbouring queries are used.
 ``hog``
-    whole-image HOG (the same :func:`signatures.globaldesc.describe`), nearest neighbour by cosine.
+    whole-image HOG (the same :func:`scenesig.signatures.globaldesc.describe`), nearest neighbour by cosine.
 ``seqslam``
     SeqSLAM (Milford & Wyeth, ICRA 2012): 64x32 patch-normalised (8x8 patches) gray thumbnails, the
     sum of absolute differences, local contrast enhancement over 10 map places, and a sequence search
@@ -59,7 +59,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from surveys.grief import GriefDataset, load
+from scenesig.surveys.grief import GriefDataset, load
 
 __all__ = ["default_config", "METHODS", "SIGNATURE_MINING", "Protocol", "protocols", "recall_at",
            "run_benchmark", "main"]
@@ -135,7 +135,7 @@ def recall_at(scores: np.ndarray, truth: np.ndarray, tolerance: int, max_n: int)
 
 # ---------------------------------------------------------------------------------- methods
 def _hog(ds, pr: Protocol, cfg: dict):
-    from signatures import globaldesc
+    from scenesig.signatures import globaldesc
 
     M = np.stack([globaldesc.describe(_gray(ds, m)) for m in pr.map_images])
     t0 = time.perf_counter()
@@ -227,7 +227,7 @@ def _vlad(ds, pr: Protocol, cfg: dict):
 
 def _mine(args):
     ds_root, place, train, live, hcfg = args
-    from signatures import heading
+    from scenesig.signatures import heading
 
     ds = load(ds_root)
     bank, _, _, st = heading.train_bank(ds, place, train, live, hcfg)
@@ -238,9 +238,9 @@ def _signatures(ds, pr: Protocol, cfg: dict, jobs: int = 1, progress: bool = Tru
     """Descriptor shortlist + bank verification (module docstring)."""
     from joblib import Parallel, delayed
 
-    from signatures import globaldesc, heading
-    from signatures import hog as hogmod
-    from signatures import mining
+    from scenesig.signatures import globaldesc, heading
+    from scenesig.signatures import hog as hogmod
+    from scenesig.signatures import mining
 
     hcfg = {**heading.default_config, **(heading.sequence_overrides if ds.kind == "sequence" else {}),
             **cfg["heading"]}

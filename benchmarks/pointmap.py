@@ -10,11 +10,11 @@ import time
 
 import numpy as np
 
-from mapping.places import TrainingView
-from mapping.pointmap import build_point_features
-from surveys.geometry import interpolate_poses, invert
-from surveys.run import read_run
-from surveys.sim.truth import depth_image
+from scenesig.mapping.places import TrainingView
+from scenesig.mapping.pointmap import build_point_features
+from scenesig.surveys.geometry import interpolate_poses, invert
+from scenesig.surveys.run import read_run
+from scenesig.surveys.sim.truth import depth_image
 
 __all__ = ["main"]
 

@@ -8,9 +8,9 @@ import time
 
 import numpy as np
 
-from localiser.posegraph import PoseGraph
-from localiser.solver import pose_exp
-from surveys.geometry import make_pose, rot_z
+from scenesig.localiser.posegraph import PoseGraph
+from scenesig.localiser.solver import pose_exp
+from scenesig.surveys.geometry import make_pose, rot_z
 
 __all__ = ["benchmark", "main"]
 

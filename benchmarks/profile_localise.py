@@ -4,15 +4,15 @@ Replays one run against a map exactly as ``scenesig localise`` does (determinist
 detector on every ``--every``-th frame; the demo's 10 Hz camera with ``--every 2`` is the paper's
 5 Hz detector) and reports where the replay loop's wall time goes, per stage:
 
-* ``image_decode`` -- reading and decoding the detector frames (:meth:`surveys.run.SurveyRun.image`;
+* ``image_decode`` -- reading and decoding the detector frames (:meth:`scenesig.surveys.run.SurveyRun.image`;
   with prefetching, the default, on a worker thread, overlapping the other stages);
-* ``hog`` -- the HOG pyramid regions the bank needs (:func:`signatures.hog.build_level`, one level);
-* ``bank_filters`` -- the filter responses (``signatures.bank._score_job``, one level and filter width);
-* ``peak_search`` -- best firing per classifier, sub-cell refinement (``signatures.bank._pick``);
-* ``search_windows`` -- the prior's search windows and predicted scales (:mod:`localiser.detector`);
-* ``solve`` -- the eq. 10 pose solve (:func:`localiser.solver.solve`);
+* ``hog`` -- the HOG pyramid regions the bank needs (:func:`scenesig.signatures.hog.build_level`, one level);
+* ``bank_filters`` -- the filter responses (``scenesig.signatures.bank._score_job``, one level and filter width);
+* ``peak_search`` -- best firing per classifier, sub-cell refinement (``scenesig.signatures.bank._pick``);
+* ``search_windows`` -- the prior's search windows and predicted scales (:mod:`scenesig.localiser.detector`);
+* ``solve`` -- the eq. 10 pose solve (:func:`scenesig.localiser.solver.solve`);
 * ``graph_update`` -- odometry, localisations and resets into the pose graph
-  (:class:`localiser.posegraph.PoseGraph`); ``graph_query`` -- its estimates and marginals;
+  (:class:`scenesig.localiser.posegraph.PoseGraph`); ``graph_query`` -- its estimates and marginals;
 * ``snap`` -- SE(2) snapping; ``place_choice`` -- nearest place and the place ahead;
 * ``bookkeeping`` -- the rest of the loop (wall time of the loop minus what the main thread spent
   in the stages; with ``--threads 2`` it includes the main thread waiting for a level another
@@ -23,7 +23,7 @@ The detector describes and scores the pyramid levels on its own threads by defau
 uses N for both, and ``--threads 1`` gives the serial profile, where the stages add up.
 
 ``machine_reference_seconds`` is a fixed workload's time before and after the replay
-(:func:`benchmarks._timing.reference_seconds`, ~0.4 s on the development machine at its usual speed):
+(:func:`scenesig.benchmarks._timing.reference_seconds`, ~0.4 s on the development machine at its usual speed):
 the machine's speed while the profile was taken.
 
 Each stage has ``ms`` (wall, exclusive: a stage called inside another is charged to itself),
@@ -46,11 +46,11 @@ __all__ = ["profile_localise", "main"]
 
 
 def _targets():
-    from localiser import detector, pipeline, posegraph, se2
-    from localiser.pipeline import Localiser
-    from mapping.store import MapStore
-    from signatures import bank, hog
-    from surveys.run import SurveyRun
+    from scenesig.localiser import detector, pipeline, posegraph, se2
+    from scenesig.localiser.pipeline import Localiser
+    from scenesig.mapping.store import MapStore
+    from scenesig.signatures import bank, hog
+    from scenesig.surveys.run import SurveyRun
     return [(SurveyRun, "image", "image_decode"),
             (bank, "build_level", "hog"), (hog, "build_level", "hog"), (bank, "_score_job", "bank_filters"),
             (bank, "_pick", "peak_search"),
@@ -69,11 +69,11 @@ def _targets():
 def profile_localise(map_root, run_root, method: str = "signatures", every: int = 2,
                      prefetch: bool = True, threads: int | None = None) -> dict:
     """Replay ``run_root`` against ``map_root`` with stage timers (module docstring)."""
-    from benchmarks._stages import StageTimer
-    from benchmarks._timing import queued_seconds, reference_seconds
-    from localiser.replay import replay
-    from mapping.store import MapStore
-    from surveys.run import read_run
+    from scenesig.benchmarks._stages import StageTimer
+    from scenesig.benchmarks._timing import queued_seconds, reference_seconds
+    from scenesig.localiser.replay import replay
+    from scenesig.mapping.store import MapStore
+    from scenesig.surveys.run import read_run
 
     store = MapStore.open(map_root)
     run = read_run(run_root)
@@ -118,7 +118,7 @@ def profile_localise(map_root, run_root, method: str = "signatures", every: int 
 
 
 def main(argv=None) -> int:
-    from benchmarks._stages import emit_json
+    from scenesig.benchmarks._stages import emit_json
 
     ap = argparse.ArgumentParser(prog="scenesig bench profile_localise", description=__doc__.splitlines()[0])
     ap.add_argument("map", help="map folder")

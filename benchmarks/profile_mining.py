@@ -1,10 +1,10 @@
 """Profile of one place's mining: ``scenesig bench profile_mining [--json OUT]``.
 
-Mines one place (:func:`signatures.mining.mine_place`, all candidate shapes, one core: BLAS and
+Mines one place (:func:`scenesig.signatures.mining.mine_place`, all candidate shapes, one core: BLAS and
 OpenCV limited to one thread, ``n_jobs=1``) and reports the wall time per stage, so a change to
 the trainer can be judged against it:
 
-* ``pyramids`` -- HOG pyramids of the place's images (:func:`signatures.hog.build_pyramid`);
+* ``pyramids`` -- HOG pyramids of the place's images (:func:`scenesig.signatures.hog.build_pyramid`);
 * ``partitions`` -- appearance descriptors and the partition split;
 * ``candidates`` -- unrolling every window a shape may fire on (``_candidates``);
 * ``negatives`` -- sampling and unrolling the local and external negatives (``_negatives``);
@@ -16,7 +16,7 @@ the trainer can be judged against it:
 * ``shape_bookkeeping`` -- the rest of the per-shape loop; ``other`` -- what no stage covers.
 
 Each stage has ``ms`` (exclusive), ``calls`` and ``ms_per_shape``.  The images are the speed
-benchmark's place (``surveys.sim.place_views(preset="demo", seed=0, n=31)``, 640x480) unless
+benchmark's place (``scenesig.surveys.sim.place_views(preset="demo", seed=0, n=31)``, 640x480) unless
 ``--images`` names image files (aligned, offsets zero).  ``--shapes N`` mines only every
 (296 / N)-th candidate shape, for a quick look.
 """
@@ -28,13 +28,13 @@ import time
 import cv2
 import numpy as np
 
-from benchmarks._stages import StageTimer, emit_json
+from scenesig.benchmarks._stages import StageTimer, emit_json
 
 __all__ = ["profile_mining", "main"]
 
 
 def _targets(timer):
-    from signatures import bank, hog, mining
+    from scenesig.signatures import bank, hog, mining
     return [(hog, "build_pyramid", "pyramids"), (bank, "build_pyramid", "pyramids"),
             (mining, "partition_images", "partitions"), (mining, "appearance_descriptor", "partitions"),
             (mining, "_candidates", "candidates"), (mining, "_negatives", "negatives"),
@@ -47,8 +47,8 @@ def profile_mining(images, offsets=None, shapes: int | None = None, seed: int = 
     """Mine one place on one core and return the per-stage profile (module docstring)."""
     from threadpoolctl import threadpool_limits
 
-    from signatures import mining
-    from signatures.shapes import ShapeSet, candidate_shapes
+    from scenesig.signatures import mining
+    from scenesig.signatures.shapes import ShapeSet, candidate_shapes
 
     h, w = images[0].shape[:2]
     shape_set = candidate_shapes(w, h)
@@ -85,11 +85,11 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the result JSON here")
     args = ap.parse_args(argv)
     if args.images:
-        from benchmarks.mining import read_images
+        from scenesig.benchmarks.mining import read_images
         images = read_images(args.images)
         offsets, source = None, f"{len(images)} files"
     else:
-        from benchmarks.speed import place_images
+        from scenesig.benchmarks.speed import place_images
         images, offsets, source = place_images()
     res = {"images": source, **profile_mining(images, offsets, args.shapes)}
     emit_json(res, args.json)

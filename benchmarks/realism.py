@@ -22,13 +22,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from surveys.geometry import invert
-from surveys.io import atomic_write_text
-from surveys.sim.conditions import CONDITIONS
-from surveys.sim.motion import LANE_CENTRE
-from surveys.sim.noise import rng_for
-from surveys.sim.scene import RunScene, default_camera
-from surveys.sim.views import get_world, view_pose
+from scenesig.surveys.geometry import invert
+from scenesig.surveys.io import atomic_write_text
+from scenesig.surveys.sim.conditions import CONDITIONS
+from scenesig.surveys.sim.motion import LANE_CENTRE
+from scenesig.surveys.sim.noise import rng_for
+from scenesig.surveys.sim.scene import RunScene, default_camera
+from scenesig.surveys.sim.views import get_world, view_pose
 
 __all__ = ["orb_consistent_matches", "realism_table", "grief_reference", "main"]
 

@@ -10,8 +10,8 @@ import time
 
 import numpy as np
 
-from localiser.synthetic import synthetic_window
-from mapping.refine import REASONS, refine_landmarks
+from scenesig.localiser.synthetic import synthetic_window
+from scenesig.mapping.refine import REASONS, refine_landmarks
 
 __all__ = ["benchmark", "main"]
 

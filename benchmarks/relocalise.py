@@ -1,6 +1,6 @@
 """Cost of global localisation per frame as the map grows: ``scenesig bench relocalise MAP RUN --json OUT``.
 
-A localiser without GPS (``scenesig localise --oracle none``, :mod:`localiser.relocalise`) spends, on
+A localiser without GPS (``scenesig localise --oracle none``, :mod:`scenesig.localiser.relocalise`) spends, on
 every detector frame while it is not localised, the time of
 
 * **retrieval** -- the live image's whole-image descriptor and its similarity to every stored
@@ -28,7 +28,7 @@ __all__ = ["measure", "main"]
 
 
 class _Tiled:
-    """A :class:`localiser.relocalise.PlaceRetrieval` whose places are repeated up to ``n_places``."""
+    """A :class:`scenesig.localiser.relocalise.PlaceRetrieval` whose places are repeated up to ``n_places``."""
 
     def __init__(self, base, n_places: int):
         self.base = base
@@ -41,8 +41,8 @@ class _Tiled:
         self.n = int(n_places)
 
     def rank(self, image):
-        from signatures.bank import limit_blas_threads
-        from signatures import globaldesc
+        from scenesig.signatures.bank import limit_blas_threads
+        from scenesig.signatures import globaldesc
 
         q = globaldesc.describe(image, self.base.config)
         with limit_blas_threads(1):       # as PlaceRetrieval.scores
@@ -51,11 +51,11 @@ class _Tiled:
 
 
 def measure(map_root, run_root, places=(30, 100, 300), frames: int = 20, shortlist: int | None = None) -> dict:
-    from localiser.pipeline import Measurement, MotionPrior, make_method
-    from localiser.relocalise import PlaceRetrieval
-    from localiser.relocalise import default_config as reloc_default
-    from mapping.store import MapStore
-    from surveys.run import read_run
+    from scenesig.localiser.pipeline import Measurement, MotionPrior, make_method
+    from scenesig.localiser.relocalise import PlaceRetrieval
+    from scenesig.localiser.relocalise import default_config as reloc_default
+    from scenesig.mapping.store import MapStore
+    from scenesig.surveys.run import read_run
 
     store = MapStore.open(map_root)
     run = read_run(run_root, skip=("groundtruth", "gps", "truth"))

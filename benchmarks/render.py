@@ -15,12 +15,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from surveys.io import atomic_write_text
-from surveys.sim.conditions import CONDITIONS
-from surveys.sim.motion import plan_drive
-from surveys.sim.noise import rng_for
-from surveys.sim.scene import RunScene, default_extrinsic
-from surveys.sim.views import get_world
+from scenesig.surveys.io import atomic_write_text
+from scenesig.surveys.sim.conditions import CONDITIONS
+from scenesig.surveys.sim.motion import plan_drive
+from scenesig.surveys.sim.noise import rng_for
+from scenesig.surveys.sim.scene import RunScene, default_extrinsic
+from scenesig.surveys.sim.views import get_world
 
 __all__ = ["benchmark", "main"]
 

@@ -1,10 +1,10 @@
 """Import speed of ROS bags (ROS 1, ROS 2 sqlite3, MCAP; raw and JPEG images), one core: prints JSON.
 
-    python -m benchmarks.rosbag_import RUN [--frames 200] [--formats ros1,ros2,mcap] [--images raw,jpeg]
+    python -m scenesig.benchmarks.rosbag_import RUN [--frames 200] [--formats ros1,ros2,mcap] [--images raw,jpeg]
                                       [--repeats 2] [--json OUT]
 
 The survey run's first ``--frames`` frames (with its odometry, INS and truth over that span) are written as a
-bag of each format with ``surveys.importers.rosbag.write_run_bag`` (raw: ``sensor_msgs/Image`` bgr8; jpeg:
+bag of each format with ``scenesig.surveys.importers.rosbag.write_run_bag`` (raw: ``sensor_msgs/Image`` bgr8; jpeg:
 ``CompressedImage`` holding the run's JPEG files), then imported into a fresh temporary run with the process
 pinned to one CPU and OpenCV single-threaded: every message read and deserialised, every image decoded
 strictly once (raw ones encoded to PNG: lossless), the run written atomically. Reports the best repeat's
@@ -49,7 +49,7 @@ def _size(path: Path) -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.rosbag_import", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m scenesig.benchmarks.rosbag_import", description=__doc__.splitlines()[0])
     ap.add_argument("run", help="a survey run (e.g. a demo world's run00_sunny)")
     ap.add_argument("--frames", type=int, default=200, help="first N frames (default 200; 0 = all)")
     ap.add_argument("--formats", default="ros1,ros2,mcap")
@@ -59,8 +59,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     import cv2
 
-    from surveys.importers.rosbag import import_rosbag, write_run_bag
-    from surveys.run import read_run
+    from scenesig.surveys.importers.rosbag import import_rosbag, write_run_bag
+    from scenesig.surveys.run import read_run
 
     if not (Path(args.run) / "run.toml").is_file():
         print(f"rosbag_import: not a survey run: {args.run}", file=sys.stderr)
@@ -101,7 +101,7 @@ def main(argv=None) -> int:
     text = json.dumps(result, indent=1)
     print(text)
     if args.json:
-        from surveys.io import atomic_write_text
+        from scenesig.surveys.io import atomic_write_text
 
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.json, text + "\n")

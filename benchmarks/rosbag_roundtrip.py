@@ -1,9 +1,9 @@
 """Round trip: simulated runs -> ROS bags -> ``import rosbag`` -> ``build-map`` / ``localise``: prints JSON.
 
-    python -m benchmarks.rosbag_roundtrip [--work DIR] [--format mcap] [--images raw] [--json OUT]
+    python -m scenesig.benchmarks.rosbag_roundtrip [--work DIR] [--format mcap] [--images raw] [--json OUT]
 
 Simulates the tiny world (seed 1: sunny, overcast and night training runs, a fog live run, 4 Hz), writes
-every run as a bag (``surveys.importers.rosbag.write_run_bag``; raw ``sensor_msgs/Image`` by default, which
+every run as a bag (``scenesig.surveys.importers.rosbag.write_run_bag``; raw ``sensor_msgs/Image`` by default, which
 the importer stores as PNG: lossless), imports each back, then builds the map from the three training runs
 and localises the fog run against it, both from the original runs and from the imported ones, with the
 same commands (``scenesig build-map``, ``scenesig localise``). Reports whether the map's files (place files
@@ -46,7 +46,7 @@ def _through_quaternion(P):
     """Poses as a ROS message carries them: matrix -> (x, y, z, qx, qy, qz, qw) -> matrix."""
     import numpy as np
 
-    from surveys.geometry import pose_to_xyzquat, xyzquat_to_pose
+    from scenesig.surveys.geometry import pose_to_xyzquat, xyzquat_to_pose
 
     return None if P is None else xyzquat_to_pose(pose_to_xyzquat(P)).reshape(np.shape(P))
 
@@ -90,15 +90,15 @@ def _compare(a: Path, b: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.rosbag_roundtrip", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m scenesig.benchmarks.rosbag_roundtrip", description=__doc__.splitlines()[0])
     ap.add_argument("--work", default=None, help="working folder (default: a temporary one)")
     ap.add_argument("--format", choices=["ros1", "ros2", "mcap"], default="mcap")
     ap.add_argument("--images", choices=["raw", "png", "jpeg"], default="raw")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
-    from surveys.importers.rosbag import import_rosbag, write_run_bag
-    from surveys.run import read_run, write_run
-    from surveys.sim.simulate import simulate
+    from scenesig.surveys.importers.rosbag import import_rosbag, write_run_bag
+    from scenesig.surveys.run import read_run, write_run
+    from scenesig.surveys.sim.simulate import simulate
 
     tmp = None if args.work else tempfile.TemporaryDirectory()
     work = Path(args.work or tmp.name)
@@ -145,7 +145,7 @@ def main(argv=None) -> int:
     text = json.dumps(result, indent=1)
     print(text)
     if args.json:
-        from surveys.io import atomic_write_text
+        from scenesig.surveys.io import atomic_write_text
 
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.json, text + "\n")

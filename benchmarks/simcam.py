@@ -21,7 +21,7 @@ from pathlib import Path
 
 import cv2
 
-from benchmarks._stages import emit_json
+from scenesig.benchmarks._stages import emit_json
 
 __all__ = ["SCHEDULE", "render_folder", "main"]
 
@@ -42,8 +42,8 @@ SCHEDULE = (
 
 def render_folder(out, places: int = 6, seed: int = 0, size=(640, 480)) -> dict:
     """Render the folder (module docstring); returns the summary."""
-    from surveys.io import atomic_path
-    from surveys.sim.views import get_world, place_views_with_poses
+    from scenesig.surveys.io import atomic_path
+    from scenesig.surveys.sim.views import get_world, place_views_with_poses
 
     world = get_world("demo", seed)
     L = float(world.route.drive_length)

@@ -8,9 +8,9 @@ import json
 
 import numpy as np
 
-from localiser.solver import pose_log, solve
-from localiser.synthetic import synthetic_problem
-from surveys.geometry import invert
+from scenesig.localiser.solver import pose_log, solve
+from scenesig.localiser.synthetic import synthetic_problem
+from scenesig.surveys.geometry import invert
 
 __all__ = ["benchmark", "main"]
 

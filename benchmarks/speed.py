@@ -1,9 +1,9 @@
 """Speed benchmark of scene signatures: ``scenesig bench speed --json OUT``.
 
-Measures, on simulated 640x480 images of one place (``surveys.sim.place_views(preset="demo",
+Measures, on simulated 640x480 images of one place (``scenesig.surveys.sim.place_views(preset="demo",
 seed=0, n=31)``; the JSON's ``images`` names them):
 
-* ``train_seconds_per_place`` -- :func:`signatures.mining.mine_place` on the 31 images with all
+* ``train_seconds_per_place`` -- :func:`scenesig.signatures.mining.mine_place` on the 31 images with all
   296 candidate shapes, pyramids included, on **one core** (BLAS, OpenCV and joblib limited to one
   thread); the median of ``train_repeats`` (3) trainings, each listed in
   ``train_seconds_per_place_runs`` (a shared virtual machine's speed drifts by a third within
@@ -19,7 +19,7 @@ seed=0, n=31)``; the JSON's ``images`` names them):
   (640x480, one core);
 * ``blas`` -- the BLAS library numpy uses (threadpoolctl);
 * ``machine_reference_seconds`` -- a fixed workload's time before and after
-  (:func:`benchmarks._timing.reference_seconds`): the machine's speed while the figures were taken.
+  (:func:`scenesig.benchmarks._timing.reference_seconds`): the machine's speed while the figures were taken.
 
 Timings are medians over repeats.  Wall time on a loaded machine measures the load as much as the
 code, so the JSON also holds the CPU time of the process -- ``train_cpu_seconds_per_place`` and
@@ -40,18 +40,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from benchmarks._timing import median_ms, median_ms_unqueued, reference_seconds
-from signatures import hog as hogmod
-from signatures import mining
-from signatures.bank import Bank
-from surveys.io import atomic_write_text
+from scenesig.benchmarks._timing import median_ms, median_ms_unqueued, reference_seconds
+from scenesig.signatures import hog as hogmod
+from scenesig.signatures import mining
+from scenesig.signatures.bank import Bank
+from scenesig.surveys.io import atomic_write_text
 
 __all__ = ["run_speed_bench", "run_from_args", "place_images"]
 
 
 def place_images(n: int = 31, seed: int = 0):
     """(images, offsets, source) of one simulated place at 640x480."""
-    from surveys.sim import place_views
+    from scenesig.surveys.sim import place_views
 
     views = place_views(preset="demo", seed=seed, n=n)
     images = [np.asarray(v[0]) for v in views]

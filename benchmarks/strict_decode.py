@@ -1,12 +1,12 @@
 """Cost and catch rate of strict image decoding: ``scenesig bench strict_decode [--json OUT]``.
 
 Frames: simulated 640x480 views of one place of the demo world under nine conditions
-(``surveys.sim.place_views(preset="demo", seed=0)``), written as the simulator writes survey runs
+(``scenesig.surveys.sim.place_views(preset="demo", seed=0)``), written as the simulator writes survey runs
 (JPEG quality 95; and PNG).  Per frame, on one core, median over ``--repeats`` passes:
 
 * ``lenient_ms`` -- ``cv2.imread`` of the file, what survey runs used before (decodes a truncated JPEG
   to a partly grey frame);
-* ``strict_ms`` -- :func:`surveys.images.read_image` (read the bytes, then libjpeg-turbo with every
+* ``strict_ms`` -- :func:`scenesig.surveys.images.read_image` (read the bytes, then libjpeg-turbo with every
   decoder warning an error; for PNG the chunk CRC/IEND walk, then OpenCV);
 * ``overhead_ms`` -- median over frames of strict - lenient, timed back to back on each frame (the
   target is at most 1 ms per VGA frame; negative = strict is faster);
@@ -31,14 +31,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from surveys.errors import CorruptImageError
-from surveys.images import png_problem, read_image
+from scenesig.surveys.errors import CorruptImageError
+from scenesig.surveys.images import png_problem, read_image
 
 __all__ = ["run_benchmark", "main"]
 
 
 def _frames(n: int) -> tuple[list, str]:
-    from surveys.sim import place_views
+    from scenesig.surveys.sim import place_views
 
     views = place_views(preset="demo", seed=0, n=n)
     return [np.asarray(v[0]) for v in views], "surveys.sim.place_views(preset='demo', seed=0)"
@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     text = json.dumps(res, indent=1)
     print(text)
     if args.json:
-        from surveys.io import atomic_write_text
+        from scenesig.surveys.io import atomic_write_text
 
         atomic_write_text(args.json, text + "\n")
     return 0

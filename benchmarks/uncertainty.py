@@ -4,7 +4,7 @@ Reads ``scenesig localise`` outputs of runs with truth (``metrics.json``, ``fram
 ``trajectory.tum``; the map and run they name) and measures, per output and pooled:
 
 * ``bound_coverage_95`` -- share of the localised frames whose absolute lateral error relative to the
-  map (:func:`localiser.outputs.map_relative_truth`; relative to the truth where the map has none) is
+  map (:func:`scenesig.localiser.outputs.map_relative_truth`; relative to the truth where the map has none) is
   within the stated ``lateral_bound_95_m``; ``bound_coverage_95_all`` over every frame with a pose;
 * ``lateral_bound_95_m_median`` over the localised frames;
 * ``raw_ratio_p95`` -- the 95th percentile of ``|error| / bound_raw`` over the localised frames, where
@@ -26,11 +26,11 @@ import numpy as np
 
 def _errors(folder: Path):
     """(lateral error relative to the map, stated bound, localised flags) per frame of one output."""
-    from localiser.evaluation import lateral_heading_errors
-    from localiser.outputs import map_relative_truth, read_output_files, reference_path, run_truth
-    from mapping.store import MapStore
-    from surveys.geometry import interpolate_poses
-    from surveys.run import read_run
+    from scenesig.localiser.evaluation import lateral_heading_errors
+    from scenesig.localiser.outputs import map_relative_truth, read_output_files, reference_path, run_truth
+    from scenesig.mapping.store import MapStore
+    from scenesig.surveys.geometry import interpolate_poses
+    from scenesig.surveys.run import read_run
 
     metrics, frames, times, poses = read_output_files(folder)
     store = MapStore.open(metrics["map"])
@@ -67,7 +67,7 @@ def _stats(err, bound, raw, loc, factors) -> dict:
 
 
 def main(argv=None) -> int:
-    from benchmarks._stages import emit_json
+    from scenesig.benchmarks._stages import emit_json
 
     ap = argparse.ArgumentParser(prog="scenesig bench uncertainty", description=__doc__.splitlines()[0])
     ap.add_argument("outputs", nargs="+", help="'scenesig localise' output folders (runs with truth)")

@@ -14,11 +14,11 @@ Protocol (per scene folder, images sorted by name = by time):
 
 Methods:
 
-* ``signatures``: one bank per scene, mined (:func:`signatures.mining.mine_place`) from the training
+* ``signatures``: one bank per scene, mined (:func:`scenesig.signatures.mining.mine_place`) from the training
   images with zero alignment offsets (fixed camera), with the training images of the *other* scenes as
   external negatives; in ``single`` mode the one image is joined by photometrically augmented copies
-  (:func:`signatures.augment.synthesise`) and mined with the single-experience settings
-  (:mod:`signatures.experience`, ``--config '{"signatures": {"single_experience": {...}}}'``).  Test images are never used in training.  Each classifier's best
+  (:func:`scenesig.signatures.augment.synthesise`) and mined with the single-experience settings
+  (:mod:`scenesig.signatures.experience`, ``--config '{"signatures": {"single_experience": {...}}}'``).  Test images are never used in training.  Each classifier's best
   detection in the whole test image (no prior, all scales the bank searches) is a correspondence with its
   position in the training images (``nominal_xy``).
 * ``orb``, ``sift``: OpenCV features (2000 per image, rotation-invariant, OpenCV's default detector
@@ -119,7 +119,7 @@ class Scene:
 
 def load_scenes(root, train: str = "multi", exclude=DEFAULT_EXCLUDE) -> list[Scene]:
     """Scenes of a webcam folder (one sub-folder per scene) split for ``train`` = multi | single."""
-    from surveys.errors import DataError
+    from scenesig.surveys.errors import DataError
 
     root = Path(root)
     if not root.is_dir():
@@ -148,7 +148,7 @@ def load_scenes(root, train: str = "multi", exclude=DEFAULT_EXCLUDE) -> list[Sce
 
 
 def read_image(path) -> np.ndarray:
-    from surveys.errors import DataError
+    from scenesig.surveys.errors import DataError
 
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
@@ -182,10 +182,10 @@ def mine_scene_bank(train_images, negatives, cfg: dict, n_jobs: int = 1):
     """The scene's bank, mined from its training images (+ augmented copies when there is one).
 
     Returns ``(bank, stats, settings)``: the bank, the mining statistics and what
-    :func:`signatures.experience.settings_for` made of the number of training images.
+    :func:`scenesig.signatures.experience.settings_for` made of the number of training images.
     """
-    from signatures import experience, mining
-    from signatures.augment import synthesise
+    from scenesig.signatures import experience, mining
+    from scenesig.signatures.augment import synthesise
 
     scfg = cfg["signatures"]
     images = list(train_images)
@@ -207,13 +207,13 @@ def signature_correspondences(bank, image, reference=None) -> tuple[np.ndarray, 
 
     With ``reference`` (a training image of the same size), the image first gets the reference's
     colours window by window (local exact histogram matching, 5 x 5 windows:
-    :func:`signatures.colour.local_exact_histogram_match`).
+    :func:`scenesig.signatures.colour.local_exact_histogram_match`).
     """
     if len(bank) == 0:
         return np.zeros((0, 2)), np.zeros((0, 2))
     img = image
     if reference is not None:
-        from signatures.colour import local_exact_histogram_match
+        from scenesig.signatures.colour import local_exact_histogram_match
         if reference.shape != img.shape:
             reference = cv2.resize(reference, img.shape[1::-1], interpolation=cv2.INTER_AREA)
         img = local_exact_histogram_match(img, reference, (5, 5))
@@ -228,7 +228,7 @@ def signature_correspondences(bank, image, reference=None) -> tuple[np.ndarray, 
 
 def point_correspondences(train_feats, test_feats, cfg: dict) -> tuple[np.ndarray, np.ndarray]:
     """Matches of the test image to the training image with the most of them."""
-    from signatures.pointfeatures import match
+    from scenesig.signatures.pointfeatures import match
 
     best = (np.zeros((0, 2)), np.zeros((0, 2)))
     for tf in train_feats:
@@ -241,7 +241,7 @@ def point_correspondences(train_feats, test_feats, cfg: dict) -> tuple[np.ndarra
 
 
 def _extract(img, kind, cfg):
-    from signatures.pointfeatures import extract
+    from scenesig.signatures.pointfeatures import extract
 
     pc = cfg["points"]
     return extract(img, kind, n_features=int(pc["n_features"]), upright=bool(pc["upright"]),
@@ -464,8 +464,8 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 
 def main(argv=None) -> int:
     """``scenesig bench webcam ARGS``; a :class:`~surveys.errors.DataError` is left to the CLI's handler."""
-    from benchmarks._stages import read_config
-    from surveys.io import atomic_write_text
+    from scenesig.benchmarks._stages import read_config
+    from scenesig.surveys.io import atomic_write_text
 
     args = build_parser().parse_args(argv)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]

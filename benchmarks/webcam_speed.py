@@ -1,9 +1,9 @@
 """Time targets of scene signatures on real webcam images: ``scenesig bench webcam-speed DIR --json OUT``.
 
 The figures, all on **one core** but ``detect_hz_1024x627_2_threads`` (OpenCV ``setNumThreads(1)``, BLAS limited to one thread by
-threadpoolctl, ``n_jobs=1``), as :mod:`benchmarks.speed` measures training:
+threadpoolctl, ``n_jobs=1``), as :mod:`scenesig.benchmarks.speed` measures training:
 
-* ``mine_seconds_per_bank_20_images`` -- :func:`signatures.mining.mine_place` on 20 training
+* ``mine_seconds_per_bank_20_images`` -- :func:`scenesig.signatures.mining.mine_place` on 20 training
   images of one scene (all 296 candidate shapes, HOG pyramids included), the way
   ``scenesig bench webcam --train multi`` mines a scene: the first scene with at least 20 even-position
   images (``chamonix`` in ``../shared/data/webcam``), at the webcam benchmark's processing size (at
@@ -19,7 +19,7 @@ threadpoolctl, ``n_jobs=1``), as :mod:`benchmarks.speed` measures training:
   (``Bank.detect``'s ``threads``, as the localiser's detector runs it; filter multiplies still on
   one BLAS thread each);
 * ``mine_seconds_single`` -- the single-experience bank of the same scene (one image and its
-  synthesised copies, :func:`benchmarks.webcam.mine_scene_bank` with ``--train single``'s input).
+  synthesised copies, :func:`scenesig.benchmarks.webcam.mine_scene_bank` with ``--train single``'s input).
 
 The JSON also holds the bank size, the CPU time of each measurement (``*_cpu_*``: on a busy machine
 the wall time measures the load as much as the code; one thread's CPU time is what a free core would
@@ -35,8 +35,8 @@ import time
 import cv2
 import numpy as np
 
-from benchmarks._stages import emit_json, read_config
-from benchmarks._timing import median_ms
+from scenesig.benchmarks._stages import emit_json, read_config
+from scenesig.benchmarks._timing import median_ms
 
 __all__ = ["run", "main"]
 
@@ -48,12 +48,12 @@ SMALL_BANK = 100
 
 def run(root, repeat: int = 10, seed: int = 0, config: dict | None = None) -> dict:
     """Measure the time targets on the webcam folder ``root`` (module docstring); ``config``:
-    overrides of the webcam benchmark's settings (:data:`benchmarks.webcam.default_config`)."""
+    overrides of the webcam benchmark's settings (:data:`scenesig.benchmarks.webcam.default_config`)."""
     from threadpoolctl import threadpool_limits
 
-    from benchmarks import webcam
-    from signatures import mining
-    from surveys.errors import DataError
+    from scenesig.benchmarks import webcam
+    from scenesig.signatures import mining
+    from scenesig.surveys.errors import DataError
 
     cfg = webcam._merged(webcam.default_config, config or {})
     scenes = webcam.load_scenes(root, "multi")

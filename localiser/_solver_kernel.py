@@ -1,6 +1,6 @@
 """Compiled per-detection loops of the eq. 10 solver (numba): residuals, Huber cost, normal equations.
 
-:class:`localiser.solver._Problem` evaluates the cost and builds the Gauss-Newton system about twenty
+:class:`scenesig.localiser.solver._Problem` evaluates the cost and builds the Gauss-Newton system about twenty
 times per detector frame, each time on a few dozen detections: in numpy that is some forty small
 array operations per call, whose interpreter overhead is most of the solve.  These loops compute
 the same quantities per detection -- the landmark in the vehicle and camera frames, the whitened
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from surveys.compiled import AVAILABLE, lazy_njit
+from scenesig.surveys.compiled import AVAILABLE, lazy_njit
 
 __all__ = ["AVAILABLE", "residuals", "normal_equations", "warm_up"]
 

@@ -15,7 +15,7 @@ the inliers.  Two libraries implement it and are installed; :func:`estimate` run
 ``opencv``
     ``cv2.solvePnPRansac`` with EPnP minimal sets (a fixed iteration cap): kept for comparison.
 
-Measured on synthetic matches with 70 % outliers (``python -m benchmarks.absolute_pose``, written up
+Measured on synthetic matches with 70 % outliers (``python -m scenesig.benchmarks.absolute_pose``, written up
 in the README): both libraries recover the pose every time with the same accuracy; poselib takes
 about half pycolmap's time, so it is the default.
 
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from surveys.geometry import Camera
+from scenesig.surveys.geometry import Camera
 
 __all__ = ["default_config", "ESTIMATORS", "AbsolutePose", "estimate"]
 

@@ -16,7 +16,7 @@ the firings into measurements for the eq. 10 solver:
   make detection cheaper and also remove most false firings before the solver sees them.
 * **measurement noise** -- eq. 5, ``R = a / (λ s) Q``: ``a`` the firing's patch area over the
   place's median nominal patch area (so ``a/(λ s)`` is dimensionless and ``Q`` keeps its meaning
-  of the covariance of a typical patch at full scale and certainty, as in :mod:`mapping.refine`),
+  of the covariance of a typical patch at full scale and certainty, as in :mod:`scenesig.mapping.refine`),
   ``λ`` the calibrated detection probability and ``s`` the pyramid scale of the firing.
 * **which scales** -- where the prior is good, the scale of a firing is predicted too: a landmark at
   depth ``z_p`` from the place's camera and ``z`` from the live one appears ``z_p / z`` times its
@@ -24,7 +24,7 @@ the firings into measurements for the eq. 10 solver:
   within ``scale_margin_levels`` of ``s_0 z / z_p`` rather than at its nominal level ±1 -- right when
   the vehicle is metres before or past the place, and fewer levels to build and score.
 * **what to compute** -- the HOG pyramid holds exactly the levels searched, and at each level only
-  the cells the windows' detections can touch (:meth:`signatures.bank.Bank.pyramid`; about half of
+  the cells the windows' detections can touch (:meth:`scenesig.signatures.bank.Bank.pyramid`; about half of
   each level when tracking), bit-identical to the whole level's features there; the small
   multiplies run on one BLAS thread (``blas_threads``), and the levels -- each one's features,
   then its filter responses -- on ``threads`` threads for a whole-image search and
@@ -48,12 +48,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapping.refine import default_config as refine_default
-from mapping.store import MapStore, PlaceData
-from signatures.bank import Bank, limit_blas_threads
-from surveys.validation import check_covariance
-from surveys.settings import merge_settings
-from surveys.geometry import Camera, invert, point_pose_jacobian
+from scenesig.mapping.refine import default_config as refine_default
+from scenesig.mapping.store import MapStore, PlaceData
+from scenesig.signatures.bank import Bank, limit_blas_threads
+from scenesig.surveys.validation import check_covariance
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.geometry import Camera, invert, point_pose_jacobian
 
 __all__ = ["default_config", "Observation", "Detector", "search_windows", "measurement_covariance",
            "projection_jacobians"]

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from surveys.geometry import interpolate_poses, yaw_of
+from scenesig.surveys.geometry import interpolate_poses, yaw_of
 
 __all__ = ["ReferencePath", "lateral_heading_errors", "blind_distances", "coverage_metrics",
            "dead_reckoning_curve", "summary", "evaluate", "EvaluationResult", "travelled"]

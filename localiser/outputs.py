@@ -1,11 +1,11 @@
 """What ``scenesig localise`` writes, and reads back: ``trajectory.tum``, ``covariances.csv``,
 ``frames.csv``, ``metrics.json``.
 
-:func:`compute_metrics` turns a :class:`localiser.replay.ReplayResult` into the ``metrics.json`` content:
+:func:`compute_metrics` turns a :class:`scenesig.localiser.replay.ReplayResult` into the ``metrics.json`` content:
 what the localiser knows (:func:`localisation_metrics`, no truth needed) and, where the run has truth,
 the evaluation against it (:func:`truth_metrics`: errors across the reference path through the map's
-places, see :mod:`localiser.evaluation`); :func:`write_outputs` writes the files (and ``trajectory.png``,
-:mod:`localiser.plots`) atomically, the trajectory first; :func:`evaluate_folder` runs the evaluation on a
+places, see :mod:`scenesig.localiser.evaluation`); :func:`write_outputs` writes the files (and ``trajectory.png``,
+:mod:`scenesig.localiser.plots`) atomically, the trajectory first; :func:`evaluate_folder` runs the evaluation on a
 finished output folder (``scenesig evaluate``).  :data:`FRAMES_COLUMNS` is the one definition of ``frames.csv``'s
 columns, used by its writer and its reader :func:`read_frames_csv`.
 """
@@ -19,12 +19,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mapping.store import MapStore
-from surveys.errors import DataError
-from surveys.io import atomic_write_text, make_dirs
-from surveys.run import read_run
-from surveys.tum import read_tum, write_tum
-from surveys.validation import csv_header
+from scenesig.mapping.store import MapStore
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.io import atomic_write_text, make_dirs
+from scenesig.surveys.run import read_run
+from scenesig.surveys.tum import read_tum, write_tum
+from scenesig.surveys.validation import csv_header
 
 from .evaluation import ReferencePath, evaluate, summary
 from .uncertainty import INFLATION
@@ -62,7 +62,7 @@ def map_relative_truth(store: MapStore, truth_poses: np.ndarray) -> np.ndarray |
     """Truth expressed in the map's frame, or None when the map does not record its places' truth.
 
     The map's frame is realised by the training runs' INS (combined per place by
-    :mod:`mapping.georef`), whose error (metres, for a GPS-aided INS) every place carries.  A simulated map records each place's exact pose (``extra["T_truth_place"]``),
+    :mod:`scenesig.mapping.georef`), whose error (metres, for a GPS-aided INS) every place carries.  A simulated map records each place's exact pose (``extra["T_truth_place"]``),
     so a true pose can be carried into the map frame through the nearest place:
     ``T_world_place · T_truth_place⁻¹ · T_truth``.  Errors against that are the localiser's own;
     errors against the raw truth add the map's georeferencing error, which no localiser can remove.
@@ -89,12 +89,12 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     odometry: :func:`odometry_distances`); localising without INS/GPS: ``oracle``, ``oracle_reads``,
     ``first_fix_m``, ``relocalisations``, ``relocalise_m``; the times that let the evaluation run on its
     own later (``reset_times``, ``first_fix_time``, ``relocalisation_times``); the uncertainty
-    ``lateral_bound_95_m_median`` (:mod:`localiser.uncertainty`); timings ``ms_per_detection``,
+    ``lateral_bound_95_m_median`` (:mod:`scenesig.localiser.uncertainty`); timings ``ms_per_detection``,
     ``ms_per_solve``, ``ms_per_odometry_update``, ``ms_per_retrieval`` (global search only),
     ``realtime_factor`` (data duration / wall time of the replay), ``wall_seconds``; bookkeeping
     ``mode``, ``every``, ``duration_s``, ``frames``, ``detector_frames``, ``localisations``,
     ``truth_source``, ``map``, ``map_id`` and ``map_generation`` (the map's identity and lifelong
-    generation, :mod:`mapping.identity`), ``run_path`` (the run folder, for ``scenesig map update``);
+    generation, :mod:`scenesig.mapping.identity`), ``run_path`` (the run folder, for ``scenesig map update``);
     detection rates ``detections_per_frame_mean`` and ``inliers_per_detection_mean``
     (:func:`detection_rates`); ``frames_corrupt`` and ``corrupt_frames`` (frames skipped: image truncated
     or corrupt); ``method_config`` (the method's settings); and in real-time mode ``frames_dropped``,
@@ -103,7 +103,7 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     **The evaluation against truth** (:func:`truth_metrics`, only where the run has ``truth.tum``, else
     ``groundtruth.tum``: ``truth_source``; ``"none"`` without either, and then none of these keys):
     ``lateral_error_m`` and ``heading_error_deg`` (``{"median", "mean", "p95"}`` of absolute errors,
-    lateral = across the reference path through the map's places; :mod:`localiser.evaluation`),
+    lateral = across the reference path through the map's places; :mod:`scenesig.localiser.evaluation`),
     ``frames_evaluated``, ``false_fixes``; where the map records its places' truth (simulated maps)
     ``lateral_error_map_m``, ``heading_error_map_deg`` (relative to the map, see
     :func:`map_relative_truth`) and ``map_georeference_error_m``; ``bound_coverage_95`` and
@@ -135,7 +135,7 @@ def run_truth(run):
 def odometry_distances(run, times) -> np.ndarray:
     """Cumulative distance (m) travelled along the run's odometry at ``times`` (the localiser's own
     measure of distance, used for the coverage figures where there is no truth)."""
-    from surveys.geometry import interpolate_poses
+    from scenesig.surveys.geometry import interpolate_poses
 
     from .evaluation import travelled
 
@@ -157,7 +157,7 @@ def _odometry_evaluation(result):
 def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> dict:
     """The part of ``metrics.json`` that needs no truth (see :func:`compute_metrics`).  ``truth``
     ``(times, poses)``, where given, only measures the distances (else the odometry does)."""
-    from surveys.geometry import interpolate_poses
+    from scenesig.surveys.geometry import interpolate_poses
 
     from .evaluation import coverage_metrics, travelled
     from .uncertainty import bounds_from_result
@@ -236,7 +236,7 @@ def truth_metrics(result, store: MapStore, truth_times, truth_poses, source: str
 
     ``result`` needs ``times``, ``poses``, ``valid``, ``localised``, ``resets``, ``failures``, ``oracle``,
     ``first_fix_time``, ``relocalisations`` and ``lateral_bound_95_m`` (or ``covariances``) -- a
-    :class:`localiser.replay.ReplayResult`, or the same read back from an output folder.
+    :class:`scenesig.localiser.replay.ReplayResult`, or the same read back from an output folder.
     """
     from .uncertainty import bounds_from_result
 
@@ -310,9 +310,9 @@ def detection_rates(detections, inliers) -> dict:
 
 
 def _evaluate_valid(result: ReplayResult, truth_times, truth_poses, store: MapStore, max_path_distance_m):
-    """:func:`localiser.evaluation.evaluate` over the frames with a world pose (all of them with an oracle;
+    """:func:`scenesig.localiser.evaluation.evaluate` over the frames with a world pose (all of them with an oracle;
     from the first fix on without one), its per-frame series put back on every frame (NaN elsewhere)."""
-    from surveys.geometry import interpolate_poses
+    from scenesig.surveys.geometry import interpolate_poses
 
     from .evaluation import EvaluationResult, travelled
 
@@ -362,7 +362,7 @@ def _no_oracle_metrics(result, ev, truth_times, truth_poses) -> dict:
     localisation whose estimate is more than :data:`FALSE_FIX_M` from the truth (relative to the map
     where the map records its places' truth, so the map's own georeferencing error does not count).
     """
-    from surveys.geometry import interpolate_poses
+    from scenesig.surveys.geometry import interpolate_poses
 
     m = _oracle_metrics(result, ev.distance_m)
     loc = np.asarray(result.localised, bool) & np.asarray(result.valid, bool)
@@ -380,7 +380,7 @@ def _fmt(v: float) -> str:
 
 def write_frames_csv(path: Path, result: ReplayResult, ev, bounds: dict | None = None) -> None:
     """``frames.csv`` (:data:`FRAMES_COLUMNS`): per frame the replay's record, the errors of ``ev`` (NaN
-    without truth) and the 95 % bounds (:mod:`localiser.uncertainty`)."""
+    without truth) and the 95 % bounds (:mod:`scenesig.localiser.uncertainty`)."""
     n = len(result.times)
     b = bounds or {}
     cols = [b.get(c, np.full(n, np.nan)) for c in FRAMES_COLUMNS[8:]]
@@ -484,10 +484,10 @@ def read_output_files(folder):
 
 
 def read_localisation(folder, search=()):
-    """Read a ``scenesig localise`` output back as a :class:`mapping.update.Localisation` (for ``scenesig
+    """Read a ``scenesig localise`` output back as a :class:`scenesig.mapping.update.Localisation` (for ``scenesig
     map update``); the run is found by ``metrics.json``'s ``run_path``, else by its name beside it or in
     the folders ``search``.  DataError naming the file if something is missing or inconsistent."""
-    from mapping.update import Localisation, find_run
+    from scenesig.mapping.update import Localisation, find_run
 
     folder = Path(folder)
     mpath = folder / "metrics.json"
@@ -519,7 +519,7 @@ def read_localisation(folder, search=()):
 
 class _Track:
     """A localisation read back from its output folder, shaped as :func:`truth_metrics` and
-    :func:`localiser.plots.plot_trajectory` read a :class:`localiser.replay.ReplayResult`."""
+    :func:`scenesig.localiser.plots.plot_trajectory` read a :class:`scenesig.localiser.replay.ReplayResult`."""
 
     def __init__(self, metrics: dict, frames: dict, times, poses, run):
         n = len(times)

@@ -3,12 +3,12 @@
 Three blocks, as in the paper's Fig. 6:
 
 * **Detector** -- finds a method's measurements in a live image for the current place
-  (:meth:`WeakLocaliser.detect`; for scene signatures :class:`localiser.detector.Detector`);
+  (:meth:`WeakLocaliser.detect`; for scene signatures :class:`scenesig.localiser.detector.Detector`);
 * **Solver** -- turns them into a localisation constraint with covariance, or none
-  (:meth:`WeakLocaliser.solve`; for scene signatures the eq. 10 solver of :mod:`localiser.solver`);
+  (:meth:`WeakLocaliser.solve`; for scene signatures the eq. 10 solver of :mod:`scenesig.localiser.solver`);
 * **Localiser** (:class:`Localiser`) -- integrates odometry at its full rate into a sliding-window
-  pose graph (:class:`localiser.posegraph.PoseGraph`), adds the localisation constraints, snaps every
-  estimate to SE(2) on the local plane of the two nearest map places (:class:`localiser.se2.PlaneSnapper`),
+  pose graph (:class:`scenesig.localiser.posegraph.PoseGraph`), adds the localisation constraints, snaps every
+  estimate to SE(2) on the local plane of the two nearest map places (:class:`scenesig.localiser.se2.PlaneSnapper`),
   chooses the nearest place (position and heading), hands the detector and solver their motion prior,
   and applies the failure rule: more than 20 m on dead reckoning since the last localisation -> reset
   from the oracle (the run's INS/GPS) and count a failure.
@@ -21,7 +21,7 @@ Scene signatures are :class:`SignatureLocaliser`; point features (ORB / SIFT) pl
 another implementation registered with :func:`register_method`, and everything else (replay,
 failure rule, outputs, metrics) is shared.
 
-Driving the blocks in time order (deterministic or real-time) is :mod:`localiser.replay`'s job.
+Driving the blocks in time order (deterministic or real-time) is :mod:`scenesig.localiser.replay`'s job.
 """
 from __future__ import annotations
 
@@ -33,10 +33,10 @@ from typing import Callable
 
 import numpy as np
 
-from mapping.store import MapStore
-from signatures.hog import ScaledImages, load_compiled
-from surveys.geometry import Camera, invert
-from surveys.settings import merge_settings
+from scenesig.mapping.store import MapStore
+from scenesig.signatures.hog import ScaledImages, load_compiled
+from scenesig.surveys.geometry import Camera, invert
+from scenesig.surveys.settings import merge_settings
 
 from . import _solver_kernel
 from .detector import Detector, Observation
@@ -206,7 +206,7 @@ class SignatureLocaliser(WeakLocaliser):
     store : the map.
     camera, T_vehicle_camera : the live camera.
     config : ``{"detector": {...}, "solver": {...}, "prior_gating": bool}``: overrides of
-        :data:`localiser.detector.default_config` and :data:`localiser.solver.default_config`;
+        :data:`scenesig.localiser.detector.default_config` and :data:`scenesig.localiser.solver.default_config`;
         ``prior_gating`` False searches the whole image on every frame instead of the windows
         around the projections the motion prior predicts.
     """
@@ -247,7 +247,7 @@ class SignatureLocaliser(WeakLocaliser):
                 "solver": dict(self.solver_config)}
 
     def prepare(self, image):
-        """The image with its HOG pyramid levels' resizes (:class:`signatures.hog.ScaledImages`): they
+        """The image with its HOG pyramid levels' resizes (:class:`scenesig.signatures.hog.ScaledImages`): they
         need neither the place nor the prior, so a replay makes them for the next frame on another
         core; detection then only crops them, with the same features."""
         if self._hog is None:
@@ -276,7 +276,7 @@ class SignatureLocaliser(WeakLocaliser):
 
 _METHODS: dict[str, Callable] = {"signatures": SignatureLocaliser}
 # Methods provided by other modules, imported on first use (they call register_method).
-_LAZY = {name: "localiser.pointmethod" for name in ("orb", "sift", "orb-all", "sift-all")}
+_LAZY = {name: "scenesig.localiser.pointmethod" for name in ("orb", "sift", "orb-all", "sift-all")}
 
 
 def register_method(name: str, factory: Callable) -> None:
@@ -313,7 +313,7 @@ class Localiser:
     oracle : ``oracle(t) -> T_world_vehicle``, the run's INS/GPS pose at time t, used to start and to
         reset after a failure (never to localise); the paper's protocol.  ``None``: no INS/GPS at all --
         the localiser starts *not localised* and dead-reckons from an arbitrary origin until a pose
-        found from the map (:meth:`fix`, by :class:`localiser.relocalise.Relocaliser`) starts the pose
+        found from the map (:meth:`fix`, by :class:`scenesig.localiser.relocalise.Relocaliser`) starts the pose
         graph; after a failure it declares itself *lost*, keeps dead-reckoning and waits for the next
         fix (a relocalisation).
     config : overrides of :data:`default_config`.
@@ -390,7 +390,7 @@ class Localiser:
 
     def odometry_pose(self, t: float) -> np.ndarray:
         """Cumulative dead-reckoned pose at time t in the odometry's own frame (interpolated, clamped)."""
-        from surveys.geometry import interpolate_poses
+        from scenesig.surveys.geometry import interpolate_poses
 
         with self._lock:
             ts, Ts = self._odo_t, self._odo_T
@@ -498,7 +498,7 @@ class Localiser:
 
     def estimate_with_covariance(self, t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Snapped ``T_world_vehicle`` at time t and the 6x6 marginal covariance of the pose there (vehicle
-        frame, GTSAM order; :meth:`localiser.posegraph.PoseGraph.estimate_with_covariance`).  A time
+        frame, GTSAM order; :meth:`scenesig.localiser.posegraph.PoseGraph.estimate_with_covariance`).  A time
         before the window gets the window's first pose, as :meth:`estimate` does."""
         with self._lock:
             try:

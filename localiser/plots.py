@@ -6,9 +6,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mapping.store import MapStore
-from surveys.geometry import interpolate_poses
-from surveys.io import atomic_path
+from scenesig.mapping.store import MapStore
+from scenesig.surveys.geometry import interpolate_poses
+from scenesig.surveys.io import atomic_path
 
 from .evaluation import lateral_heading_errors
 from .outputs import map_relative_truth, reference_path

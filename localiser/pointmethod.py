@@ -2,32 +2,32 @@
 
 ``scenesig localise MAP RUN --method orb|sift|orb-all|sift-all`` runs this instead of the scene
 signatures; replay, the pose graph, SE(2) snapping, the failure rule (20 m blind -> oracle reset),
-the outputs and the metrics are the shared code of :mod:`localiser.pipeline` / :mod:`localiser.replay`.
+the outputs and the metrics are the shared code of :mod:`scenesig.localiser.pipeline` / :mod:`scenesig.localiser.replay`.
 
 Set up as hloc users run point features.  Per frame, for the place the localiser chose:
 
 * **features** -- the live image's 2000 strongest upright ORB or SIFT features
-  (:func:`signatures.pointfeatures.extract`); inside a :func:`signatures.pointfeatures.feature_cache`
+  (:func:`scenesig.signatures.pointfeatures.extract`); inside a :func:`scenesig.signatures.pointfeatures.feature_cache`
   block, localisers of one kind replaying the same run (``sift`` and ``sift-all``) extract each frame
   once.
 * **point map** -- ``reference`` (methods ``orb``, ``sift``): the reference run's keyframe with its
   triangulated 3D points, the paper's baseline; ``all`` (``orb-all``, ``sift-all``): a keyframe from
-  every training run at the place, all in the place frame (:func:`mapping.pointmap.build_point_features_all`);
+  every training run at the place, all in the place frame (:func:`scenesig.mapping.pointmap.build_point_features_all`);
   the live image is matched to each and the keyframe with the most matches is used (retrieval by
   match count).
 * **prior-guided matching** (default; ``prior_gating``) -- a map point may only match live
   keypoints inside the window around its projection predicted from the odometry prior, ``±3σ`` of
   ``J P_x Jᵀ + G P_l Gᵀ + σ_px² I`` (at least ``min_radius_px``), exactly the signature detector's
-  search windows (:func:`localiser.detector.search_windows`); where the localiser is lost, the whole
+  search windows (:func:`scenesig.localiser.detector.search_windows`); where the localiser is lost, the whole
   image.  Nearest neighbours and ratios are taken among the allowed pairs.
 * **matcher** (``match``) -- ``ratio`` (default): mutual nearest neighbours and Lowe's ratio test
   (0.8); ``dapc``: mutual nearest neighbours and the DAPC adaptive-distance test of Zhang et al.
   (CMC 2023, eqs. 6-7); ``gms``: nearest neighbours filtered by grid-based motion statistics
   (Bian et al., CVPR 2017).
-* **solve** -- robust absolute pose (:mod:`localiser.absolute_pose`: LO-RANSAC, iterations driven
+* **solve** -- robust absolute pose (:mod:`scenesig.localiser.absolute_pose`: LO-RANSAC, iterations driven
   by a 0.9999 confidence, non-linear refinement), then the same robust Levenberg-Marquardt with the
   motion prior, gating and checks as the signatures' eq. 10 solver
-  (:func:`localiser.solver.solve_pnp_prior`); accepted with at least 12 inliers (an absolute count,
+  (:func:`scenesig.localiser.solver.solve_pnp_prior`); accepted with at least 12 inliers (an absolute count,
   not a share of the putative matches).
 
 Keypoint noise grows with the keypoint's scale (``pixel_sigma`` at the finest octave); the 3D points'
@@ -43,11 +43,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapping.pointmap import POINT_MAPS, keypoint_sigma, point_features, point_keyframes, point_map_covariances
-from mapping.store import MapStore
-from signatures.pointfeatures import PointFeatures, active_feature_cache, extract, match
-from surveys.settings import merge_settings
-from surveys.geometry import Camera
+from scenesig.mapping.pointmap import POINT_MAPS, keypoint_sigma, point_features, point_keyframes, point_map_covariances
+from scenesig.mapping.store import MapStore
+from scenesig.signatures.pointfeatures import PointFeatures, active_feature_cache, extract, match
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.geometry import Camera
 
 from .detector import search_windows
 from .pipeline import Measurement, MotionPrior, WeakLocaliser, register_method
@@ -107,7 +107,7 @@ def match_to_map(live: PointFeatures, mapf: PointFeatures, matcher: str = "ratio
 
     Returns
     -------
-    :class:`signatures.pointfeatures.Matches` with ``query`` indexing the map features and ``train``
+    :class:`scenesig.signatures.pointfeatures.Matches` with ``query`` indexing the map features and ``train``
     the live ones.
     """
     if matcher == "ratio":
@@ -160,7 +160,7 @@ class LiveFrame:
     Attributes
     ----------
     shape : (height, width) of the image.
-    features : its :class:`signatures.pointfeatures.PointFeatures`.
+    features : its :class:`scenesig.signatures.pointfeatures.PointFeatures`.
     ms : extraction time (ms), counted in the detection time.
     """
 
@@ -213,7 +213,7 @@ def method_name(kind: str, point_map: str = "reference") -> str:
 
 
 class PointLocaliser(WeakLocaliser):
-    """ORB or SIFT against a place's keyframe 3D points (a :class:`localiser.pipeline.WeakLocaliser`).
+    """ORB or SIFT against a place's keyframe 3D points (a :class:`scenesig.localiser.pipeline.WeakLocaliser`).
 
     Parameters
     ----------
@@ -302,7 +302,7 @@ class PointLocaliser(WeakLocaliser):
     # ------------------------------------------------------------------------------ detector
     def live_features(self, image: np.ndarray) -> PointFeatures:
         """The live image's features (same extraction as the map keyframe's); inside a
-        :func:`signatures.pointfeatures.feature_cache` block, taken from its cache when another
+        :func:`scenesig.signatures.pointfeatures.feature_cache` block, taken from its cache when another
         localiser of the block has extracted them (``orb`` and ``orb-all`` replaying one run)."""
         cache = active_feature_cache()
         get = extract if cache is None else cache.extract

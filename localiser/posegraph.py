@@ -16,7 +16,7 @@ composed with the odometry since.
 
 Conventions: GTSAM ``Pose3`` -- tangent ``(ω, v)``, right perturbation ``T = T̄·Exp(ξ)``; odometry
 covariances are of the increment in its end frame, localisation covariances are of the pose in the
-vehicle frame (what :mod:`localiser.solver` produces).
+vehicle frame (what :mod:`scenesig.localiser.solver` produces).
 
 The failure rule of the paper (§4.3) lives here too: the distance travelled on dead reckoning since
 the last localisation, with a failure when it exceeds 20 m (:class:`DeadReckoningMonitor`).
@@ -29,9 +29,9 @@ import time
 import gtsam
 import numpy as np
 
-from surveys.validation import check_covariance, check_pose
-from surveys.settings import merge_settings
-from surveys.geometry import invert
+from scenesig.surveys.validation import check_covariance, check_pose
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.geometry import invert
 
 from .solver import pose_exp, pose_log
 

@@ -4,7 +4,7 @@ The paper's localiser (McManus et al. 2015, §3.3) starts from, and recovers thr
 INS/GPS.  Without one the localiser must find where it is on the map from images and odometry:
 
 1. **Coarse retrieval** (:class:`PlaceRetrieval`) -- every place stores compact whole-image
-   descriptors of its training images (:mod:`signatures.globaldesc`, written by the map builder);
+   descriptors of its training images (:mod:`scenesig.signatures.globaldesc`, written by the map builder);
    the live image's descriptor is compared with all of them and the best places form a shortlist.
 2. **Verification** -- each shortlisted place's weak localiser (for scene signatures: its bank
    searched over the whole image, then the eq. 10 solver) runs with a vague prior centred on the
@@ -28,11 +28,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapping.store import MapStore
-from signatures import globaldesc
-from surveys.geometry import yaw_of
+from scenesig.mapping.store import MapStore
+from scenesig.signatures import globaldesc
+from scenesig.surveys.geometry import yaw_of
 
-from signatures.bank import limit_blas_threads
+from scenesig.signatures.bank import limit_blas_threads
 from .pipeline import Localiser, Measurement, MotionPrior, WeakLocaliser
 
 __all__ = ["default_config", "PlaceRetrieval", "Relocaliser", "SearchResult", "place_descriptors"]
@@ -148,7 +148,7 @@ class Relocaliser:
     ----------
     store : the map.
     method : the weak localiser that verifies a shortlisted place (``detect`` + ``solve``).
-    localiser : the :class:`localiser.pipeline.Localiser` (its odometry, estimate and :meth:`fix`).
+    localiser : the :class:`scenesig.localiser.pipeline.Localiser` (its odometry, estimate and :meth:`fix`).
     config : overrides of :data:`default_config`.
     retrieval : the coarse retrieval (default: :class:`PlaceRetrieval` of ``store``); anything with
         ``rank(image, candidates=None) -> [place, ...]``.

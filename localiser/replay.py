@@ -21,11 +21,11 @@ Two modes:
   ``lag_max_s`` in ``metrics.json``).
 
 In both modes a frame whose image fails strict decoding (truncated or corrupt:
-:mod:`surveys.images`) is skipped -- no detection, the odometry goes on -- named once in a warning
+:mod:`scenesig.surveys.images`) is skipped -- no detection, the odometry goes on -- named once in a warning
 and counted (``frames_corrupt``, ``corrupt_frames``).
 
 Outputs in DIR, whether or not the run has truth: ``trajectory.tum`` (the estimate at every frame time;
-evo reads it), ``covariances.csv`` (each pose's planar covariance, :mod:`localiser.uncertainty`),
+evo reads it), ``covariances.csv`` (each pose's planar covariance, :mod:`scenesig.localiser.uncertainty`),
 ``frames.csv`` (time, place, detections, inliers, localised, lateral_error, heading_error,
 distance_since_localisation, and the 95 % bounds; the errors NaN without truth), ``metrics.json`` (see
 :func:`compute_metrics`) and ``trajectory.png``
@@ -41,7 +41,7 @@ The run's INS/GPS poses (``groundtruth.tum``) are the *oracle* (``oracle="ins"``
 protocol and the default): they initialise the localiser and reset it after a failure, and are never
 used to localise.  With ``oracle="none"`` the localiser opens neither ``groundtruth.tum`` nor
 ``gps.csv``: it finds itself on the map by global localisation and relocalises when lost
-(:mod:`localiser.relocalise`).  The exact truth (``truth.tum``) is read only by the evaluation,
+(:mod:`scenesig.localiser.relocalise`).  The exact truth (``truth.tum``) is read only by the evaluation,
 after the replay.
 
 Command line: ``scenesig localise MAP RUN --out DIR [--method signatures] [--oracle ins|none] [--every 4 | --realtime [--speed X]]``.
@@ -57,10 +57,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mapping.store import MapStore
-from surveys.settings import merge_settings
-from surveys.errors import CorruptImageError, DataError
-from surveys.run import SurveyRun, read_run
+from scenesig.mapping.store import MapStore
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.errors import CorruptImageError, DataError
+from scenesig.surveys.run import SurveyRun, read_run
 
 from .outputs import (FRAMES_COLUMNS, TIMING_KEYS, compute_metrics, map_relative_truth,  # noqa: F401  (re-exported)
                       reference_path, write_outputs)
@@ -473,7 +473,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     progress : show a tqdm bar.
     oracle : ``"ins"`` or ``"none"`` (default: ``config["oracle"]``, else ``"ins"``).
     retrieval : the coarse place retrieval for ``oracle="none"`` (default: the map's descriptors,
-        :class:`localiser.relocalise.PlaceRetrieval`).
+        :class:`scenesig.localiser.relocalise.PlaceRetrieval`).
     """
     cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
     oracle = oracle or cfg["oracle"]
@@ -535,7 +535,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
 
 def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
     """Say before replaying when the route passes places too weak to localise (mapping.coverage)."""
-    from mapping.coverage import MIN_SIGNATURES, weak_places_on_route
+    from scenesig.mapping.coverage import MIN_SIGNATURES, weak_places_on_route
 
     weak = weak_places_on_route(store, run)
     if weak:

@@ -8,7 +8,7 @@ over the vehicle pose ``T = T_place_vehicle`` with Levenberg-Marquardt, where
 
 * ``q(T, T̂) = Log(T̂^{-1} T)`` is the 6-vector between the pose and the motion prior ``T̂``;
 * ``h`` projects the landmark ``p_i`` (place frame) through the extrinsic ``T_vehicle_camera`` and the
-  pinhole camera (:class:`surveys.geometry.Camera`);
+  pinhole camera (:class:`scenesig.surveys.geometry.Camera`);
 * ``Σ_i = R_i + G_i P_l,i G_i^T`` is the detection covariance ``R_i`` (eq. 5, supplied by the caller)
   plus the landmark's map covariance ``P_l,i`` carried into the image by the projection Jacobian
   ``G_i = ∂h/∂p_i`` (a map landmark that is uncertain along the ray hardly matters, one uncertain
@@ -32,12 +32,12 @@ The spec's ``T_k,p`` (place -> vehicle at time k) is ``inv(T_place_vehicle)``.
 
 Two back ends share the gating, the covariance (inverse of the Huber-weighted information at the
 solution) and the checks: a compact numpy LM on the 6-dof tangent (default; its per-detection
-residual and normal-equation loops compiled, :mod:`localiser._solver_kernel`, equal to the numpy
+residual and normal-equation loops compiled, :mod:`scenesig.localiser._solver_kernel`, equal to the numpy
 array code to rounding) and a GTSAM factor graph
 (``GenericProjectionFactorCal3_S2`` with landmarks as variables held by their map priors, Huber noise
 models, ``LevenbergMarquardtOptimizer``; ~11 ms), kept as an independent reference that the tests
 compare against, and for the benchmark (``scenesig bench solver``).  The same code serves point features via
-:func:`solve_pnp_prior`, which initialises with a robust absolute pose (:mod:`localiser.absolute_pose`).
+:func:`solve_pnp_prior`, which initialises with a robust absolute pose (:mod:`scenesig.localiser.absolute_pose`).
 """
 from __future__ import annotations
 
@@ -48,12 +48,12 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from localiser import _solver_kernel
-from localiser.absolute_pose import default_config as absolute_pose_default
-from localiser.absolute_pose import estimate as estimate_absolute_pose
-from surveys.validation import check_array
-from surveys.settings import merge_settings
-from surveys.geometry import Camera, invert, point_pose_jacobian
+from scenesig.localiser import _solver_kernel
+from scenesig.localiser.absolute_pose import default_config as absolute_pose_default
+from scenesig.localiser.absolute_pose import estimate as estimate_absolute_pose
+from scenesig.surveys.validation import check_array
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.geometry import Camera, invert, point_pose_jacobian
 
 __all__ = ["default_config", "SolveResult", "LocalisationConstraint", "solve", "solve_pnp_prior",
            "pose_exp", "pose_log", "default_pnp_config"]
@@ -120,7 +120,7 @@ class LocalisationConstraint:
 
     The posterior already contains the motion prior, which in the pose graph is odometry again:
     feeding ``(T_world_vehicle_detections, information_detections)`` to
-    :meth:`localiser.posegraph.PoseGraph.add_localisation` avoids counting it twice.
+    :meth:`scenesig.localiser.posegraph.PoseGraph.add_localisation` avoids counting it twice.
     """
 
     T_world_vehicle: np.ndarray
@@ -488,7 +488,7 @@ def solve(uv, R, landmarks, T_place_vehicle_prior, P_prior, camera: Camera, T_ve
     landmarks : (N,3) landmark positions p_p^i in the place frame, one per detection.
     T_place_vehicle_prior : (4,4) motion prior T̂ (the spec's T̂_k,p inverted); also the LM start.
     P_prior : (6,6) its covariance, GTSAM Pose3 convention (rotation first, right perturbation).
-    camera : :class:`surveys.geometry.Camera`.
+    camera : :class:`scenesig.surveys.geometry.Camera`.
     T_vehicle_camera : (4,4) extrinsic.
     landmark_cov : (N,3,3) map covariances of the landmarks (place frame), or None.
     config : overrides of :data:`default_config`.

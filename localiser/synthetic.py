@@ -3,9 +3,9 @@
 * :func:`synthetic_place` -- a procedural place: one scene under many appearance conditions, with known
   alignment (a classifier mined on some conditions must fire at the right spot on a held-out one);
 * :func:`synthetic_window` -- a window of frames with landmarks at known depths and classifier
-  detections, for landmark refinement (:mod:`mapping.refine`);
+  detections, for landmark refinement (:mod:`scenesig.mapping.refine`);
 * :func:`synthetic_problem` -- one localisation problem (detections, landmarks, a perturbed prior and
-  the true pose) for the solver (:mod:`localiser.solver`).
+  the true pose) for the solver (:mod:`scenesig.localiser.solver`).
 
 It sits at the top of the library stack because it builds the inputs of every layer.  The place's
 scene is a fixed random layout of "structures" -- filled rectangles (windows,
@@ -18,9 +18,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from mapping.geometry import camera_poses, reproject
-from mapping.refine import Detections
-from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, rot_z
+from scenesig.mapping.geometry import camera_poses, reproject
+from scenesig.mapping.refine import Detections
+from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, rot_z
 
 from .solver import pose_exp
 

@@ -1,6 +1,6 @@
 """Every frame's uncertainty: 95 % bounds from the pose graph's marginals, and ``covariances.csv``.
 
-The localiser's pose graph (:mod:`localiser.posegraph`) holds, at every frame, the marginal covariance of
+The localiser's pose graph (:mod:`scenesig.localiser.posegraph`) holds, at every frame, the marginal covariance of
 the vehicle pose given the odometry and the map's localisations (the Gaussian approximation GTSAM's
 smoother keeps; McManus et al. 2015, §3.3.2).  This module turns it into what a user of the
 localisation reads:
@@ -10,7 +10,7 @@ localisation reads:
   frame, rotation first; a translation perturbation ``δt`` moves the world position by ``R δt`` and a
   rotation perturbation about the vehicle's z axis is, on a near-level road, a change of yaw.
 * :func:`frame_bounds` -- per frame, ``lateral_bound_95_m`` (across the reference path through the map's
-  places, the direction the evaluation's lateral error is measured in, :mod:`localiser.evaluation`),
+  places, the direction the evaluation's lateral error is measured in, :mod:`scenesig.localiser.evaluation`),
   ``longitudinal_bound_95_m`` (along it) and ``heading_bound_95_deg``: ``z · k · σ`` with
   ``z = 1.96`` (the two-sided 95 % quantile of a normal error) and ``k`` the one inflation factor
   :data:`INFLATION` (see below).  The bounds are relative to the map: the marginal says how well the
@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from surveys.errors import DataError
-from surveys.io import atomic_write_text
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.io import atomic_write_text
 
 __all__ = ["Z_95", "INFLATION", "BOUND_COLUMNS", "COVARIANCE_COLUMNS", "planar_covariances", "frame_bounds",
            "bounds_from_result", "write_covariances_csv", "read_covariances_csv"]
@@ -79,7 +79,7 @@ def planar_covariances(poses: np.ndarray, covariances: np.ndarray, inflation: fl
 def frame_bounds(poses: np.ndarray, planar: np.ndarray, path) -> dict:
     """``{column: (N,)}`` of :data:`BOUND_COLUMNS` from (N,3,3) planar covariances (already inflated).
 
-    ``path`` is the reference path (:class:`localiser.evaluation.ReferencePath`): lateral is along its
+    ``path`` is the reference path (:class:`scenesig.localiser.evaluation.ReferencePath`): lateral is along its
     left normal at the point nearest each estimate, longitudinal along its tangent.  NaN where a
     frame has no pose.
     """

@@ -5,14 +5,14 @@ For each place (every 10 m along the reference run):
 1. *training images* -- the frame nearest the place from every training run (by INS position and
    heading), the reference run's first; with few runs, each run also gives neighbouring frames within
    the place's segment (``frames_per_run``), and a place that still has fewer than ``min_images``
-   images gets photometrically augmented copies of them (:mod:`signatures.augment`);
-2. *mining* -- :func:`signatures.mining.mine_place` (iterative discriminative clustering over the
+   images gets photometrically augmented copies of them (:mod:`scenesig.signatures.augment`);
+2. *mining* -- :func:`scenesig.signatures.mining.mine_place` (iterative discriminative clustering over the
    fixed template of candidate shapes), with images of other places of the reference run as extra
    negatives;
 3. *landmark refinement* -- every surviving classifier is fired over the reference run's ±10 m window;
-   :func:`mapping.refine.refine_landmarks` runs the temporal RANSAC check, the depth sweep and LM with a
+   :func:`scenesig.mapping.refine.refine_landmarks` runs the temporal RANSAC check, the depth sweep and LM with a
    Huber cost;
-4. *georeferencing* (:mod:`mapping.georef`) -- the kept bank is fired on every training run's
+4. *georeferencing* (:mod:`scenesig.mapping.georef`) -- the kept bank is fired on every training run's
    image and that image's pose relative to the place is solved by robust PnP; each run's INS pose
    composed with it is an independent estimate of the place's world pose (the place frame itself is
    exact relative to the scene, but the reference INS alone carries its metre-level per-run offset into
@@ -24,12 +24,12 @@ For each place (every 10 m along the reference run):
 5. the kept classifiers, their landmarks (place frame) and covariances go to the map store (the
    per-run georeferencing observations in the place file's meta, so a resumed build recombines them);
 6. *place descriptors* -- a compact whole-image descriptor of every training image of the place
-   (:mod:`signatures.globaldesc`), so a localiser without GPS can retrieve the places a live image
-   may show (:mod:`localiser.relocalise`); kept in the place file's meta and copied into the
+   (:mod:`scenesig.signatures.globaldesc`), so a localiser without GPS can retrieve the places a live image
+   may show (:mod:`scenesig.localiser.relocalise`); kept in the place file's meta and copied into the
    manifest (``extra["descriptor"]``), where the localiser reads all of them without opening a place.
 
 Places are independent, so they build in parallel: joblib locally, or a Dask distributed cluster with
-``--scheduler``.  The driver process alone writes the map (:class:`mapping.store.MapWriter`), so an
+``--scheduler``.  The driver process alone writes the map (:class:`scenesig.mapping.store.MapWriter`), so an
 interrupted build resumes where it stopped and produces the same bytes.
 
 The command line is ``scenesig build-map RUN... --reference RUN --out maps/NAME [--config JSON]``.
@@ -45,24 +45,24 @@ from pathlib import Path
 
 import numpy as np
 
-from surveys.errors import CorruptImageError, DataError
-from surveys.io import append_line
-from surveys.settings import merge_settings
-from surveys.geometry import invert
-from surveys.run import SurveyRun
-from signatures import experience
-from signatures.augment import synthesise
-from signatures import globaldesc
-from signatures.mining import mine_place
-from signatures.bank import default_config as bank_default_config
-from signatures.hog import level_scale
-from mapping import georef as georef_mod
-from mapping import places as places_mod
-from mapping.coverage import MIN_SIGNATURES
-from mapping.pointmap import build_point_features, build_point_features_all
-from mapping.refine import Detections, REASONS, refine_landmarks
-from mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
-from surveys.io import atomic_write_bytes
+from scenesig.surveys.errors import CorruptImageError, DataError
+from scenesig.surveys.io import append_line
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.geometry import invert
+from scenesig.surveys.run import SurveyRun
+from scenesig.signatures import experience
+from scenesig.signatures.augment import synthesise
+from scenesig.signatures import globaldesc
+from scenesig.signatures.mining import mine_place
+from scenesig.signatures.bank import default_config as bank_default_config
+from scenesig.signatures.hog import level_scale
+from scenesig.mapping import georef as georef_mod
+from scenesig.mapping import places as places_mod
+from scenesig.mapping.coverage import MIN_SIGNATURES
+from scenesig.mapping.pointmap import build_point_features, build_point_features_all
+from scenesig.mapping.refine import Detections, REASONS, refine_landmarks
+from scenesig.mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
+from scenesig.surveys.io import atomic_write_bytes
 
 __all__ = ["default_config", "build_map", "build_place", "mine_and_refine", "MinedPlace", "mining_images",
            "place_views", "place_negatives", "vet_images", "load_config"]
@@ -152,7 +152,7 @@ def _true_depths(run: SurveyRun, frame: int, image: np.ndarray, boxes: np.ndarra
     """
     import cv2
 
-    from surveys.sim.truth import depth_image
+    from scenesig.surveys.sim.truth import depth_image
 
     depth = depth_image(run, frame)
     if depth is None:
@@ -199,9 +199,9 @@ def mining_images(seed: int, views: list, images: list, config: dict | None = No
 
     ``images[k]`` is the training frame of ``views[k]`` (the reference run's first); these come first
     and in that order, so with one frame per run and enough runs mining sees exactly the paper's
-    training set.  Then each run's neighbouring frames (:func:`mapping.places.neighbour_frames`, within
+    training set.  Then each run's neighbouring frames (:func:`scenesig.mapping.places.neighbour_frames`, within
     the place's segment), then -- while the place has fewer than ``min_images`` -- photometrically
-    augmented copies of the frames in turn (:func:`signatures.augment.augment`; seeded by ``seed``, the
+    augmented copies of the frames in turn (:func:`scenesig.signatures.augment.augment`; seeded by ``seed``, the
     place index at build time, so a build repeats), each offset by its known shift.
 
     Returns
@@ -290,7 +290,7 @@ def mine_and_refine(views: list, negatives: list[np.ndarray], cfg: dict, rng: in
     (§3.2.1) of every survivor over ``views[0]``'s window, with that run's odometry.
 
     ``views[0]`` is the frame the landmarks are expressed in (at build time the reference run's view;
-    a lifelong update passes the live run's view, :mod:`mapping.update`).  ``cfg`` is a merged build
+    a lifelong update passes the live run's view, :mod:`scenesig.mapping.update`).  ``cfg`` is a merged build
     configuration; ``rng`` seeds mining.
     """
     ref = views[0]
@@ -408,7 +408,7 @@ def _build_place(place, views, negatives, config):
 
 
 def place_views(place, train: list[SurveyRun], reference: SurveyRun, cfg: dict) -> list:
-    """A place's training views (:func:`mapping.places.training_views`), the reference run's first."""
+    """A place's training views (:func:`scenesig.mapping.places.training_views`), the reference run's first."""
     views = places_mod.training_views(place, train, cfg["places"])
     return [v for v in views if v.run.name == reference.name] + [v for v in views if v.run.name != reference.name]
 
@@ -492,7 +492,7 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     scheduler : Dask scheduler address (``tcp://host:port``) or a ``distributed.Client``.
     places_subset : optional iterable of place indices to build (others are left for a later resume).
     skip_corrupt : every frame is decoded strictly first (:func:`vet_images`); a truncated or corrupt
-        one stops the build with a :class:`surveys.errors.CorruptImageError` naming it, unless this is
+        one stops the build with a :class:`scenesig.surveys.errors.CorruptImageError` naming it, unless this is
         set: then such frames are left out of the runs (listed in the manifest's parameters, so a
         resume must leave out the same ones) and counted in ``build_summary.json``
         (``frames_corrupt``, ``corrupt_frames``).
@@ -593,7 +593,7 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     if reference.truth_times is not None:
         # Simulated reference run: record where each place truly is, so the evaluation can tell the
         # localiser's error relative to the map from the map's own georeferencing error.
-        from surveys.geometry import interpolate_poses
+        from scenesig.surveys.geometry import interpolate_poses
         truth = interpolate_poses(reference.truth_times, reference.truth_poses,
                                   reference.frame_times[[p.reference_frame for p in places]]).reshape(-1, 4, 4)
         for m, T in zip(metas, truth):

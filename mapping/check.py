@@ -1,22 +1,22 @@
 """Vet a built map before a long job: manifest, every place file's checksum and format, weak places.
 
 :func:`check_map` reports every problem it finds (not only the first, as :meth:`MapStore.open`
-does) as :class:`surveys.check.Problem` lines:
+does) as :class:`scenesig.surveys.check.Problem` lines:
 
 * ``manifest.json`` missing (a ``journal.jsonl`` means an interrupted build: re-run build-map to
   resume it), not JSON, not a scenesig map, an unsupported version, malformed entries;
 * each place file: present, its sha256 the manifest's, and it parses as a place of that index
-  (:func:`mapping.store.decode_place`: zip, arrays, format entry, dtypes);
+  (:func:`scenesig.mapping.store.decode_place`: zip, arrays, format entry, dtypes);
 * weak places -- too few signatures to localise reliably -- as warnings, where this scenesig has
-  the weak-place rule (:func:`mapping.coverage.weak_places`).
+  the weak-place rule (:func:`scenesig.mapping.coverage.weak_places`).
 """
 from __future__ import annotations
 
 import hashlib
 from pathlib import Path
 
-from surveys.check import Problem
-from surveys.errors import DataError
+from scenesig.surveys.check import Problem
+from scenesig.surveys.errors import DataError
 
 from .store import JOURNAL, MANIFEST, PLACES_DIR, MapStore, decode_place
 
@@ -30,8 +30,8 @@ def is_map(folder) -> bool:
 
 
 def _weak_place_problems(store: MapStore) -> list[Problem]:
-    """Weak places as warnings (the rule lives in :mod:`mapping.coverage`)."""
-    from mapping.coverage import MIN_SIGNATURES, weak_places
+    """Weak places as warnings (the rule lives in :mod:`scenesig.mapping.coverage`)."""
+    from scenesig.mapping.coverage import MIN_SIGNATURES, weak_places
 
     return [Problem(str(store.root / store.places[i].file), None,
                     f"weak place {i}: {store.places[i].signatures} signatures (fewer than {MIN_SIGNATURES}): "
@@ -79,7 +79,7 @@ def check_paths(paths, max_gap_s: float | None = None, images: bool = True, jobs
 
     Returns the ``scenesig check --json`` document (see :mod:`scenesig.commands.check`).
     """
-    from surveys.check import DEFAULT_MAX_GAP_S, check_run, is_run
+    from scenesig.surveys.check import DEFAULT_MAX_GAP_S, check_run, is_run
 
     max_gap_s = DEFAULT_MAX_GAP_S if max_gap_s is None else float(max_gap_s)
     targets = []

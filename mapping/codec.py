@@ -7,7 +7,7 @@ a tolerance, measured per array (and, for the bank, optionally on the detection 
 restored to their original dtype on load; large float16 arrays (the classifier filters) keep only the
 mantissa bits the tolerance needs and are written as byte planes, and zip entries are LZMA-compressed
 (map format version 2; version 1 files, deflated plain float16, still load).  The folder, manifest,
-journal and checksums around the files are :mod:`mapping.store`.
+journal and checksums around the files are :mod:`scenesig.mapping.store`.
 """
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ from typing import Callable
 
 import numpy as np
 
-from surveys.validation import check_image
-from surveys.errors import DataError
+from scenesig.surveys.validation import check_image
+from scenesig.surveys.errors import DataError
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "PlaceData", "encode_place", "decode_place", "encode_keyframe", "decode_keyframe",
            "FLOAT16_MIN_MANTISSA_BITS", "GEOMETRY_TOL"]
@@ -97,7 +97,7 @@ class PlaceData:
         JSON-serialisable per-place metadata (e.g. reference run, frame, rejection counts).
     points : dict of str -> ndarray, optional
         Point-feature map of the place for the ORB / SIFT baselines
-        (:func:`mapping.pointmap.build_point_features`: keyframe keypoints, descriptors, 3D points).
+        (:func:`scenesig.mapping.pointmap.build_point_features`: keyframe keypoints, descriptors, 3D points).
         Stored under ``points/`` exactly in the dtypes given (the builder already picks compact,
         lossless ones); a place without point features stores nothing extra, so its bytes do not change.
     """

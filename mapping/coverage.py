@@ -1,7 +1,7 @@
 """Weak places: places of a map with too few scene signatures to localise reliably.
 
 A place's bank localises the vehicle when at least ``min_inliers`` (4) of its signatures are detected
-and agree (:mod:`localiser.solver`).  Under an appearance the map was not trained on only a fraction of
+and agree (:mod:`scenesig.localiser.solver`).  Under an appearance the map was not trained on only a fraction of
 a bank fires -- at night or in fog often a third or less -- so a place needs several times that many
 signatures: a place with fewer than :data:`MIN_SIGNATURES` is *weak*.  ``build-map`` names weak places
 (``places_weak`` in ``build_summary.json`` and a warning), ``localise`` warns about those on its route,
@@ -21,7 +21,7 @@ MIN_SIGNATURES = 10
 
 def _open(map_or_path):
     if isinstance(map_or_path, (str, Path)):
-        from mapping.store import MapStore
+        from scenesig.mapping.store import MapStore
         return MapStore.open(map_or_path)
     return map_or_path
 

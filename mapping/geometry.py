@@ -1,10 +1,10 @@
 """Mapping geometry: window poses, landmark reprojection, jacobians and the ray-depth parametrisation.
 
-Everything here is built on :mod:`surveys.geometry` (the project's one camera and SE(3) implementation);
+Everything here is built on :mod:`scenesig.surveys.geometry` (the project's one camera and SE(3) implementation);
 this module only adds what landmark refinement (McManus et al. 2015, §3.2.1) needs, vectorised over many
 landmarks and window frames at once.
 
-Frames (see ``surveys.geometry`` for the conventions):
+Frames (see ``scenesig.surveys.geometry`` for the conventions):
 
 * the *place frame* ``p`` is the vehicle frame at the place (or at the reference frame of a window);
   landmarks ``p_p^i`` live in it;
@@ -24,7 +24,7 @@ import dataclasses
 
 import numpy as np
 
-from surveys.geometry import Camera, invert
+from scenesig.surveys.geometry import Camera, invert
 
 __all__ = [
     "window_poses_from_increments", "window_poses_from_odometry", "camera_poses", "ideal_camera",

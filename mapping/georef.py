@@ -31,7 +31,7 @@ every run's GPS carries the same slow error as its INS.
 INS poses are interpolated (linear / SLERP) at the image timestamps; the run's clocks are assumed
 synchronised (a camera-INS latency ``dt`` would add ``v·dt`` along the track per run).
 
-``build_place`` (:mod:`mapping.build`) calls :func:`observe_place` and stores the per-run observations
+``build_place`` (:mod:`scenesig.mapping.build`) calls :func:`observe_place` and stores the per-run observations
 in the place file's meta (``"georef"``), so a resumed build recombines them without recomputing;
 ``build_map`` calls :func:`georeference_places` before writing the manifest.
 """
@@ -41,12 +41,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from surveys.settings import merge_settings
-from surveys.geometry import (Camera, exp_so3, interpolate_poses, invert, make_pose, point_pose_jacobian, rot_z,
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.geometry import (Camera, exp_so3, interpolate_poses, invert, make_pose, point_pose_jacobian, rot_z,
                               yaw_of)
-from mapping.geometry import ideal_camera, ideal_pixels
-from mapping.refine import _huber_weight
-from mapping.refine import default_config as refine_defaults
+from scenesig.mapping.geometry import ideal_camera, ideal_pixels
+from scenesig.mapping.refine import _huber_weight
+from scenesig.mapping.refine import default_config as refine_defaults
 
 __all__ = ["default_config", "RelativePose", "solve_relative_pose", "observe_place", "combine_estimates",
            "smooth_corrections", "georeference_places", "METHODS"]
@@ -326,7 +326,7 @@ def observe_place(place, views: list, images: list, bank, landmarks, covariances
     place : mapping.places.Place
     views : list of TrainingView, the reference run's first (its frame defines the place frame).
     images : gray images of the views' training frames (as mined).
-    bank : the place's kept :class:`signatures.bank.Bank`; ``landmarks`` (n,3) and ``covariances``
+    bank : the place's kept :class:`scenesig.signatures.bank.Bank`; ``landmarks`` (n,3) and ``covariances``
         (n,3,3) its landmarks in the place frame.
     Q : base detection covariance of eq. 5 (px², 2x2); default: landmark refinement's ``Q``.
     config : overrides of :data:`default_config`.

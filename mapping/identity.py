@@ -4,7 +4,7 @@ A map is named by a folder, and folders are renamed, copied and rebuilt; what a 
 (``metrics.json``) records of its map must name the map itself.  Every map gets, when its build starts,
 a random identity (:func:`new_map_id`, a UUID, kept in the build's journal so an interrupted build that
 resumes keeps it, and written into ``manifest.json`` as ``map_id``).  A lifelong update
-(:mod:`mapping.update`) keeps it and counts ``generation`` up, so ``(map_id, generation)`` names one
+(:mod:`scenesig.mapping.update`) keeps it and counts ``generation`` up, so ``(map_id, generation)`` names one
 state of one map.  Two maps built from the same runs with the same settings are two maps: they get two
 identities (their contents may be equal; what was localised against which is not).  An update written
 elsewhere (``scenesig map update MAP ... --out NEWMAP``) continues the same map: the copy keeps the

@@ -5,7 +5,7 @@ solves for the pose from the 2D-3D correspondences.  Its map, per place:
 
 1. the *keyframe* -- the reference run's frame at the place (the frame that defines the place frame);
    its ORB and SIFT features (upright, the strongest ``n_candidates`` by detector response, as in
-   :func:`signatures.pointfeatures.extract`);
+   :func:`scenesig.signatures.pointfeatures.extract`);
 2. *tracks* -- the keyframe is matched to the reference run's frames about 2.5 and 5 m ahead and
    behind (``baselines_m``), whose poses relative to the keyframe come from the run's odometry
    (``TrainingView.T_frame_window``; smooth over a few metres).  Matches are mutual nearest neighbours
@@ -19,7 +19,7 @@ solves for the pose from the 2D-3D correspondences.  Its map, per place:
    cells, best first), so PnP is well conditioned and the place stays small.
 
 Everything is in the place frame (the vehicle frame of the keyframe), like the signatures' landmarks.
-:func:`build_point_features` returns plain arrays, stored by :class:`mapping.store.PlaceData` under
+:func:`build_point_features` returns plain arrays, stored by :class:`scenesig.mapping.store.PlaceData` under
 ``points/``:
 
 ``{kind}_kp`` (N,2) float32
@@ -51,11 +51,11 @@ import time
 
 import numpy as np
 
-from surveys.settings import merge_settings
-from surveys.geometry import Camera, invert
-from signatures.pointfeatures import PointFeatures, extract, match
-from signatures.pointfeatures import default_config as features_default
-from mapping.geometry import camera_poses, ideal_camera, ideal_pixels, reproject_jacobian
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.geometry import Camera, invert
+from scenesig.signatures.pointfeatures import PointFeatures, extract, match
+from scenesig.signatures.pointfeatures import default_config as features_default
+from scenesig.mapping.geometry import camera_poses, ideal_camera, ideal_pixels, reproject_jacobian
 
 __all__ = ["default_config", "build_point_features", "build_point_features_all", "combine_keyframe_maps",
            "point_keyframes",
@@ -102,7 +102,7 @@ def keypoint_sigma(features: PointFeatures, pixel_sigma: float = 1.0, config: di
 
     ORB's octave field is the pyramid level (scale ``scaleFactor ** level``); SIFT packs the octave in
     the low byte (signed; -1 is the up-sampled first octave, scale 1/2).  ``config``: overrides of
-    :data:`signatures.pointfeatures.default_config` (for ORB's ``scaleFactor``).
+    :data:`scenesig.signatures.pointfeatures.default_config` (for ORB's ``scaleFactor``).
     """
     oct_ = np.asarray(features.octave, dtype=np.int64)
     if features.kind == "orb":
@@ -479,7 +479,7 @@ def build_point_features(view, camera: Camera, T_vehicle_camera: np.ndarray, con
 
     Parameters
     ----------
-    view : :class:`mapping.places.TrainingView`
+    view : :class:`scenesig.mapping.places.TrainingView`
         The reference run's view of the place: ``frame`` is the keyframe (it defines the place frame),
         ``window`` its frames within ±10 m and ``T_frame_window`` their odometry poses in the keyframe's
         vehicle frame.
@@ -513,13 +513,13 @@ def build_point_features_all(views, T_place_views, config: dict | None = None, r
     image matched to the one it matches best).  Each run's keyframe is triangulated from that run's
     own window (:func:`build_point_features`) and moved into the place frame with the run's pose
     relative to the place, which the map builder has already solved (``T_place_views``: the
-    georeferencing's visual solve of each training image, :func:`mapping.georef.observe_place`;
+    georeferencing's visual solve of each training image, :func:`scenesig.mapping.georef.observe_place`;
     None where it failed -- that run's keyframe is left out, as an image that does not register is
     left out of an SfM model).
 
     Parameters
     ----------
-    views : list of :class:`mapping.places.TrainingView`, the reference run's first.
+    views : list of :class:`scenesig.mapping.places.TrainingView`, the reference run's first.
     T_place_views : list of (4,4) or None, the vehicle pose of each view's frame in the place frame.
     config : overrides of :data:`default_config`.
     reference_points : the reference view's :func:`build_point_features` output, if already built.
@@ -580,7 +580,7 @@ def add_to_map(map_root, reference, config: dict | None = None, overwrite: bool 
     Parameters
     ----------
     map_root : the map folder.
-    reference : :class:`surveys.run.SurveyRun`, the map's reference run (its images and odometry).
+    reference : :class:`scenesig.surveys.run.SurveyRun`, the map's reference run (its images and odometry).
     config : overrides of :data:`default_config`.
     overwrite : recompute places that already have point features.
 
@@ -591,8 +591,8 @@ def add_to_map(map_root, reference, config: dict | None = None, overwrite: bool 
     """
     from tqdm import tqdm
 
-    from mapping.places import Place, training_views
-    from mapping.store import MapStore, MapWriter, PlaceData
+    from scenesig.mapping.places import Place, training_views
+    from scenesig.mapping.store import MapStore, MapWriter, PlaceData
 
     t0 = time.perf_counter()
     store = MapStore.open(map_root, cache_size=0)
@@ -618,7 +618,7 @@ def add_to_map(map_root, reference, config: dict | None = None, overwrite: bool 
             win = np.asarray(view.window)
             if place.reference_frame not in win:
                 raise ValueError(f"place {idx}: reference frame {place.reference_frame} outside its window")
-            from surveys.geometry import interpolate_poses
+            from scenesig.surveys.geometry import interpolate_poses
             odo = interpolate_poses(reference.odometry_times, reference.odometry_poses, reference.frame_times[win])
             T_ref = interpolate_poses(reference.odometry_times, reference.odometry_poses,
                                       reference.frame_times[place.reference_frame])

@@ -26,10 +26,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from surveys.validation import check_covariance
-from surveys.settings import merge_settings
-from surveys.geometry import Camera, invert
-from mapping.geometry import (
+from scenesig.surveys.validation import check_covariance
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.geometry import Camera, invert
+from scenesig.mapping.geometry import (
     anchor_rays, camera_depth, camera_poses, derotate_pixels, ideal_camera, ideal_pixels, ray_points,
     reproject, reproject_jacobian,
 )
@@ -317,7 +317,7 @@ def temporal_check(xy, valid, threshold, min_ratio=0.5, min_detections=4, max_pa
     Parameters
     ----------
     xy : (N, F, 2) array
-        Detection positions (ideally derotated, see :func:`mapping.geometry.derotate_pixels`).
+        Detection positions (ideally derotated, see :func:`scenesig.mapping.geometry.derotate_pixels`).
     valid : (N, F) bool array
         Where a detection exists.
     threshold : float
@@ -390,7 +390,7 @@ def depth_sweep(origin, direction, z_obs, k, mask, T_cam_place, camera, Qinv, al
     Parameters
     ----------
     origin, direction : (n, 3) arrays
-        Anchor rays in the place frame (:func:`mapping.geometry.anchor_rays`).
+        Anchor rays in the place frame (:func:`scenesig.mapping.geometry.anchor_rays`).
     z_obs : (n, F, 2) array
         Observations (ideal pixels).
     k : (n, F) array
@@ -536,7 +536,7 @@ def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_v
         (N classifiers, F window frames).
     T_window_place : (F, 4, 4) array
         ``T_{j,p}``: the place (vehicle) frame in each window vehicle frame, from the odometry increments
-        (:func:`mapping.geometry.window_poses_from_increments`).
+        (:func:`scenesig.mapping.geometry.window_poses_from_increments`).
     camera : Camera
         The survey camera (distortion allowed).
     T_vehicle_camera : (4, 4) array

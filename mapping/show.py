@@ -11,11 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
-from surveys.errors import DataError
-from surveys.geometry import invert, transform
-from signatures.bank import Bank
-from mapping.store import MapStore
-from surveys.io import atomic_path
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.geometry import invert, transform
+from scenesig.signatures.bank import Bank
+from scenesig.mapping.store import MapStore
+from scenesig.surveys.io import atomic_path
 
 __all__ = ["place_figure", "heatmap", "show_map", "describe_map"]
 

@@ -16,7 +16,7 @@ Layout of ``maps/NAME/``::
 
 Guarantees:
 
-* every file is written atomically (:func:`surveys.io.atomic_write_bytes`: temp file in the same folder,
+* every file is written atomically (:func:`scenesig.surveys.io.atomic_write_bytes`: temp file in the same folder,
   fsync, ``os.replace``, fsync folder);
 * place files are byte-deterministic (a zip written entry by entry in sorted key order with a fixed
   timestamp; ``np.savez`` would stamp the current time), so a local build, a distributed build and an
@@ -24,10 +24,10 @@ Guarantees:
 * re-opening a :class:`MapWriter` on an interrupted build keeps every place whose file matches its journal
   checksum, so ``has_place`` lets the builder skip it;
 * :class:`MapStore` checks the format version and every file's sha256, and raises
-  :class:`surveys.errors.DataError` naming the file; places load lazily through a small LRU cache.
+  :class:`scenesig.surveys.errors.DataError` naming the file; places load lazily through a small LRU cache.
 
 How one place becomes bytes (smallest float types within a tolerance, float16 byte planes, LZMA zip
-entries) is :mod:`mapping.codec`; the atomic writes are :mod:`surveys.io`.
+entries) is :mod:`scenesig.mapping.codec`; the atomic writes are :mod:`scenesig.surveys.io`.
 
 The store only knows the bank as a ``dict[str, np.ndarray]`` (``Bank.to_arrays()`` /
 ``Bank.from_arrays()``), so it does not depend on how signatures are represented.
@@ -46,11 +46,11 @@ from typing import Callable
 
 import numpy as np
 
-from surveys.validation import check_pose
-from surveys.errors import DataError
-from surveys.io import append_line, atomic_write_bytes, fsync_dir, make_dirs, remove_stale_temps
+from scenesig.surveys.validation import check_pose
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.io import append_line, atomic_write_bytes, fsync_dir, make_dirs, remove_stale_temps
 
-from surveys.geometry import Camera, yaw_of
+from scenesig.surveys.geometry import Camera, yaw_of
 
 from .identity import map_id_of, new_map_id
 from .codec import (FORMAT_NAME, FORMAT_VERSION, READABLE_VERSIONS, PlaceData, decode_keyframe, decode_place,  # noqa: F401
@@ -77,7 +77,7 @@ def software_version() -> str:
 
 def place_file_name(index: int, generation: int = 0) -> str:
     """Relative path of a place's file, e.g. ``places/place_0007.npz``; a place rewritten by a lifelong
-    update (:mod:`mapping.update`) gets a new file per map generation, ``places/place_0007.g0002.npz``, so
+    update (:mod:`scenesig.mapping.update`) gets a new file per map generation, ``places/place_0007.g0002.npz``, so
     the file an older manifest lists is never overwritten."""
     if int(generation) == 0:
         return f"{PLACES_DIR}/place_{int(index):04d}.npz"
@@ -377,10 +377,10 @@ class MapStore:
     places : dict of int -> PlaceMeta
         In index order.
     map_id : str
-        The map's identity (:mod:`mapping.identity`): drawn when it was built, kept by updates; derived from
+        The map's identity (:mod:`scenesig.mapping.identity`): drawn when it was built, kept by updates; derived from
         the manifest for a map built before identities existed (``map_id_derived`` is then True).
     generation : int
-        0 for a built map, +1 per lifelong update (:mod:`mapping.update`).
+        0 for a built map, +1 per lifelong update (:mod:`scenesig.mapping.update`).
     history : list of dict
         One entry per update: ``generation``, ``runs``, ``places`` updated, ``inputs`` digest.
 

@@ -12,7 +12,7 @@ and without ground truth:
    never ``truth.tum`` or the INS).  Its pose relative to the place, ``T_place_vehicle``, is the
    estimate at the run's nearest accepted localisation carried to the frame by the run's odometry, so
    a frame is used only within ``max_blind_m`` of odometry of one (an oracle reset does not count);
-3. *re-mining* -- :func:`mapping.build.mine_and_refine` on the live frame first, then the place's
+3. *re-mining* -- :func:`scenesig.mapping.build.mine_and_refine` on the live frame first, then the place's
    build-time training images and its earlier experiences, with the build's negatives and seed; the
    survivors go through the temporal check and the depth refinement over the live run's ±10 m window
    from its odometry (§3.2.1) and are carried into the place frame by ``T_place_vehicle``, corrected
@@ -24,10 +24,10 @@ and without ground truth:
    generation that added it, the reason, signatures added; the map's ``generation`` and ``history``.
 
 Safety on disk.  A rewritten place goes to a new file per generation
-(:func:`mapping.store.place_file_name`), written atomically and journalled (``update.jsonl``); the
+(:func:`scenesig.mapping.store.place_file_name`), written atomically and journalled (``update.jsonl``); the
 manifest, replaced atomically last, is the commit point: a reader or a crash sees the old generation or
 the complete new one.  Files of the previous generation stay (a reader that opened the old manifest
-still finds them; :meth:`mapping.store.MapStore.load_place` also follows a newer manifest), older
+still finds them; :meth:`scenesig.mapping.store.MapStore.load_place` also follows a newer manifest), older
 ones are removed.  Re-running an interrupted update with the same inputs resumes from the journal and
 gives the same bytes (everything is seeded; nothing depends on the wall clock); re-running a completed
 one changes nothing.
@@ -46,17 +46,17 @@ from pathlib import Path
 
 import numpy as np
 
-from surveys.errors import DataError
-from surveys.geometry import invert, yaw_of
-from surveys.io import atomic_write_bytes, atomic_write_text, fsync_dir
-from surveys.run import SurveyRun, read_run
-from surveys.settings import merge_settings
-from signatures.bank import Bank
-from mapping import places as places_mod
-from mapping.build import _merge as build_settings, mine_and_refine, place_negatives, place_views
-from mapping.codec import PlaceData, encode_place
-from mapping.identity import map_id_of
-from mapping.store import JOURNAL as BUILD_JOURNAL, MANIFEST, PLACES_DIR, MapStore, place_file_name, write_manifest
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.geometry import invert, yaw_of
+from scenesig.surveys.io import atomic_write_bytes, atomic_write_text, fsync_dir
+from scenesig.surveys.run import SurveyRun, read_run
+from scenesig.surveys.settings import merge_settings
+from scenesig.signatures.bank import Bank
+from scenesig.mapping import places as places_mod
+from scenesig.mapping.build import _merge as build_settings, mine_and_refine, place_negatives, place_views
+from scenesig.mapping.codec import PlaceData, encode_place
+from scenesig.mapping.identity import map_id_of
+from scenesig.mapping.store import JOURNAL as BUILD_JOURNAL, MANIFEST, PLACES_DIR, MapStore, place_file_name, write_manifest
 
 __all__ = ["default_config", "Localisation", "find_run", "weak_places", "check_localisations", "update_map"]
 
@@ -99,7 +99,7 @@ default_config = {
 
 @dataclass
 class Localisation:
-    """A ``scenesig localise`` output folder, read back (:func:`localiser.outputs.read_localisation`):
+    """A ``scenesig localise`` output folder, read back (:func:`scenesig.localiser.outputs.read_localisation`):
     its metrics, the localiser's estimated trajectory (one pose per frame), its ``frames.csv`` columns
     (``place``, ``detections``, ``inliers``, ``localised``, ...), the live run, and a digest of the
     machine-independent content (what makes two updates the same)."""
@@ -311,7 +311,7 @@ def align_to_reference(bank: Bank, landmarks_vehicle: np.ndarray, T_place_vehicl
     """Correct the live frame's estimated pose with the reference run's frames around the place.
 
     ``landmarks_vehicle`` (n,3) are the new landmarks in the live frame's vehicle frame; ``ref_view`` the
-    reference run's :class:`mapping.places.TrainingView` of the place, whose training frame is the
+    reference run's :class:`scenesig.mapping.places.TrainingView` of the place, whose training frame is the
     place frame.  Each new classifier is searched within ``align_window_px`` of its landmark's predicted
     pixel in the reference frames ``align_frames_m`` away; a planar correction is fitted to the firings
     (robust, soft-L1) and refitted on those that agree within ``align_inlier_px``.
@@ -412,7 +412,7 @@ def _new_place(old: PlaceData, place, views, negatives, cfg, T_place_vehicle, uc
 
 def check_localisations(store: MapStore, localisations, allow_older_generation: bool = False,
                         applied: bool = False) -> None:
-    """Every localisation must have been made against this map (``map_id``, :mod:`mapping.identity`) and
+    """Every localisation must have been made against this map (``map_id``, :mod:`scenesig.mapping.identity`) and
     its current generation; DataError naming the localisation's ``metrics.json`` and saying why not.
 
     A localisation of an older generation (the map was updated since) is refused unless
@@ -465,7 +465,7 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
     ----------
     map_root : the map folder (updated in place unless ``out``).
     localisations : list of :class:`Localisation` (``scenesig localise`` outputs read by
-        :func:`localiser.outputs.read_localisation`; their runs must still exist).
+        :func:`scenesig.localiser.outputs.read_localisation`; their runs must still exist).
     out : optional new map folder: the map is copied there first and updated there.
     runs_dirs : folders holding the map's training runs (default: the live runs' parent folders).
     config : overrides of :data:`default_config`.

@@ -3,7 +3,7 @@
 Every command lives in :mod:`scenesig.commands` as a module with ``register(groups)`` -- which adds its
 parser to ``groups[""]`` (the top level) or to a group such as ``groups["map"]`` and sets
 ``_run=run`` -- and ``run(args) -> int``.  This file only assembles the parser and owns the one error
-handler: :class:`surveys.errors.DataError` (bad input, named file and line) becomes
+handler: :class:`scenesig.surveys.errors.DataError` (bad input, named file and line) becomes
 ``scenesig: error: ...`` and exit status 2; Ctrl-C exits 130, a closed output pipe 141.  Heavy imports
 (GTSAM, Dask) happen inside the command that needs them, so ``scenesig --help`` stays fast.
 """
@@ -13,7 +13,7 @@ import argparse
 import importlib
 import sys
 
-from surveys.errors import DataError
+from scenesig.surveys.errors import DataError
 
 #: command modules under ``scenesig.commands``, in the order ``scenesig --help`` lists them
 COMMANDS = (

@@ -41,7 +41,7 @@ import sys
 import time
 from pathlib import Path
 
-from surveys.settings import merge_settings
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "run_demo", "build_demo_report", "localise_live_runs", "localise_groups"]
 
@@ -67,7 +67,7 @@ def _log(msg: str) -> None:
 
 def _simulate(world: Path, cfg: dict, jobs: int) -> dict:
     """Simulate the world unless ``world`` already holds exactly these runs."""
-    from surveys.sim.simulate import simulate
+    from scenesig.surveys.sim.simulate import simulate
 
     conditions = list(cfg["training"]) + list(cfg["live"])
     summary_path = world / "simulate_summary.json"
@@ -89,8 +89,8 @@ def _simulate(world: Path, cfg: dict, jobs: int) -> dict:
 
 def _localise_task(map_root, run_root: str, out: str, entry: str, every: int) -> tuple[str, str, dict]:
     """One localisation; ``entry`` is a method name, or ``<method>-none`` for the method without INS/GPS;
-    ``map_root`` the map folder or an open :class:`mapping.store.MapStore`."""
-    from localiser.replay import localise
+    ``map_root`` the map folder or an open :class:`scenesig.mapping.store.MapStore`."""
+    from scenesig.localiser.replay import localise
 
     blind = entry.endswith("-none")
     method = entry.removesuffix("-none")
@@ -115,12 +115,12 @@ def _localise_group(map_root: str, world: str, out: str, run: str, entries: list
 
     The entries of a group are the point-feature baselines of one kind (``sift`` and ``sift-all``):
     they replay the same frames with the same extraction settings, so the second one takes the live
-    features the first extracted (:func:`signatures.pointfeatures.feature_cache`; identical
+    features the first extracted (:func:`scenesig.signatures.pointfeatures.feature_cache`; identical
     results, half the extraction -- SIFT on a VGA frame costs ~0.13 s of CPU), and the places the
     first one decoded (one map store, caching every place the run passes).
     """
-    from mapping.store import MapStore
-    from signatures.pointfeatures import feature_cache
+    from scenesig.mapping.store import MapStore
+    from scenesig.signatures.pointfeatures import feature_cache
 
     if pooled:
         _one_thread()
@@ -134,8 +134,8 @@ def _localise_group(map_root: str, world: str, out: str, run: str, entries: list
 
 def _matching_task(map_root: str, world: str, live: list[str], reference: str, pooled: bool):
     """The matching experiment (§4.2), run in the localisation pool beside the replays."""
-    from mapping.store import MapStore
-    from surveys.run import read_run
+    from scenesig.mapping.store import MapStore
+    from scenesig.surveys.run import read_run
 
     from .experiments import matching_experiment
 
@@ -157,7 +157,7 @@ def localise_groups(todo: list[tuple[str, str]]) -> list[tuple[str, list[str]]]:
     """``(run, entry)`` pairs -> ``(run, [entry, ...])`` jobs: a run's point-feature entries of one kind
     (``orb`` / ``orb-all``, ``sift`` / ``sift-all``, with or without INS/GPS) share a job, each other
     entry is its own; the costliest first (:data:`_COST`)."""
-    from mapping.pointmap import KINDS
+    from scenesig.mapping.pointmap import KINDS
 
     groups: dict = {}
     for run, entry in todo:
@@ -263,10 +263,10 @@ def build_demo_report(out, config: dict | None = None, live_names: list[str] | N
 
 def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     """Run the whole demo into ``out``; returns ``summary.json``'s content."""
-    from mapping.build import build_map
-    from mapping.store import MapStore
-    from surveys.io import atomic_write_bytes
-    from surveys.run import read_run
+    from scenesig.mapping.build import build_map
+    from scenesig.mapping.store import MapStore
+    from scenesig.surveys.io import atomic_write_bytes
+    from scenesig.surveys.run import read_run
 
     from .plots import write_matching
 

@@ -9,7 +9,7 @@ matched against the map.  A match counts when the feature sits in the same place
 detections in the reference keyframe (``PlaceData.meta["detections_at_reference"]``) and the live
 ones the bank's best detection in the live frame; for ORB and SIFT the map positions are the keyframe
 features the point-feature localiser uses (those with a 3D point) and the live ones their matches by
-the point localiser's matcher (:mod:`localiser.pointmethod`: mutual nearest neighbour + ratio 0.8, no
+the point localiser's matcher (:mod:`scenesig.localiser.pointmethod`: mutual nearest neighbour + ratio 0.8, no
 prior gating).  Outputs: matches per place per run
 (Figs 11, 14) and heat maps of where matches fall -- +1 for every pixel inside a matched shape, averaged
 over the runs, per place and over all places (Figs 12, 13).
@@ -30,18 +30,18 @@ from pathlib import Path
 
 import numpy as np
 
-from mapping.pointmap import point_features
-from mapping.store import MapStore
-from signatures.bank import Bank
-from surveys.settings import merge_settings
-from surveys.errors import DataError
-from surveys.geometry import interpolate_poses, yaw_of
-from surveys.run import SurveyRun, read_run
+from scenesig.mapping.pointmap import point_features
+from scenesig.mapping.store import MapStore
+from scenesig.signatures.bank import Bank
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.geometry import interpolate_poses, yaw_of
+from scenesig.surveys.run import SurveyRun, read_run
 
-from localiser.evaluation import dead_reckoning_curve, lateral_heading_errors, travelled
-from localiser.outputs import read_output_files, reference_path
-from localiser.pointmethod import default_config as point_default
-from localiser.pointmethod import match_to_map
+from scenesig.localiser.evaluation import dead_reckoning_curve, lateral_heading_errors, travelled
+from scenesig.localiser.outputs import read_output_files, reference_path
+from scenesig.localiser.pointmethod import default_config as point_default
+from scenesig.localiser.pointmethod import match_to_map
 
 __all__ = ["default_config", "MatchingResult", "aligned_frame", "signature_matches", "point_matches",
            "matching_experiment", "LocaliseOutput", "read_localise_output", "find_localise_outputs",
@@ -139,7 +139,7 @@ def point_matches(points: dict, kind: str, image: np.ndarray, delta_px: float = 
     n_matched : int; boxes : (m, 4) squares of the live keypoints' size around the matched ones;
     n_putative : int, matches before the δ test.
     """
-    from signatures.pointfeatures import extract
+    from scenesig.signatures.pointfeatures import extract
 
     cfg = {**point_default, **(config or {})}
     mapf = point_features(points, kind)

@@ -8,7 +8,7 @@ the day map, autumn on the demo's, by default) is then learned:
 1. simulate two runs of it, A and B, beside the demo's runs (run numbers after the demo's, so their
    drives differ from every training run's);
 2. localise A and B against the base map (scene signatures; *before*);
-3. update a copy of the base map with A (``scenesig map update``, :mod:`mapping.update`) into
+3. update a copy of the base map with A (``scenesig map update``, :mod:`scenesig.mapping.update`) into
    ``DIR/lifelong/BASE-CONDITION/map`` -- the base map is left as it was;
 4. localise B and one other live run of the demo (the sunny one by default) against the updated map (*after*);
 5. ``DIR/lifelong/BASE-CONDITION/result/lifelong.json`` (table rows, the update summary, the targets)
@@ -27,7 +27,7 @@ import json
 import time
 from pathlib import Path
 
-from surveys.settings import merge_settings
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "run_lifelong", "ROW_KEYS"]
 
@@ -55,9 +55,9 @@ def _row(label: str, map_name: str, metrics: dict) -> dict:
 
 
 def _localise(map_root: Path, run_root: Path, out: Path, every: int) -> dict:
-    from localiser.replay import localise
+    from scenesig.localiser.replay import localise
 
-    from mapping.store import MapStore
+    from scenesig.mapping.store import MapStore
 
     done = out / "metrics.json"
     if done.is_file() and (out / "trajectory.tum").is_file():
@@ -74,7 +74,7 @@ def _figure(rows: list[dict], path: Path, updated: list) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from surveys.io import atomic_path
+    from scenesig.surveys.io import atomic_path
 
     labels = [f"{r['label']}\n{r['map']}" for r in rows]
     fig, axes = plt.subplots(1, 4, figsize=(15, 3.6))
@@ -98,8 +98,8 @@ def _figure(rows: list[dict], path: Path, updated: list) -> None:
 def _day_map(out: Path, train_names: list[str], dcfg: dict, cfg: dict, jobs: int) -> Path:
     """The base map of the demo's day training runs (built once into ``DIR/lifelong/day-map``; the
     build resumes or is reused like any ``build_map``), with the demo's reference run."""
-    from mapping.build import build_map
-    from surveys.run import read_run
+    from scenesig.mapping.build import build_map
+    from scenesig.surveys.run import read_run
 
     runs = {n: read_run(out / "world" / n) for n in train_names}
     day = [n for n in train_names if runs[n].conditions[0] in cfg["day_conditions"]]
@@ -115,11 +115,11 @@ def _day_map(out: Path, train_names: list[str], dcfg: dict, cfg: dict, jobs: int
 
 def run_lifelong(out="out/demo", jobs: int = 2, config: dict | None = None, demo_config: dict | None = None) -> dict:
     """The lifelong stage on a finished demo in ``out``; returns ``lifelong.json``'s content."""
-    from localiser.outputs import read_localisation
-    from mapping.update import update_map
-    from surveys.io import atomic_write_text
-    from surveys.run import read_run
-    from surveys.sim.simulate import run_names, simulate_run
+    from scenesig.localiser.outputs import read_localisation
+    from scenesig.mapping.update import update_map
+    from scenesig.surveys.io import atomic_write_text
+    from scenesig.surveys.run import read_run
+    from scenesig.surveys.sim.simulate import run_names, simulate_run
 
     from .demo import default_config as demo_defaults
 

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mapping.store import MapStore
-from surveys.geometry import interpolate_poses
-from surveys.io import atomic_path, atomic_write_text, make_dirs
-from surveys.run import SurveyRun
+from scenesig.mapping.store import MapStore
+from scenesig.surveys.geometry import interpolate_poses
+from scenesig.surveys.io import atomic_path, atomic_write_text, make_dirs
+from scenesig.surveys.run import SurveyRun
 
 from .experiments import MatchingResult, dead_reckoning, frame_distances, ins_errors, speed
 

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from surveys.errors import DataError
-from surveys.io import atomic_write_bytes, atomic_write_text, make_dirs
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.io import atomic_write_bytes, atomic_write_text, make_dirs
 
 from .experiments import find_localise_outputs, find_runs, read_localise_output, summary_rows
 from .plots import localisation_figures

@@ -1,7 +1,7 @@
-"""Compiled loops of :func:`signatures.hog.fhog` (numba), bit for bit the numpy code's.
+"""Compiled loops of :func:`scenesig.signatures.hog.fhog` (numba), bit for bit the numpy code's.
 
-The numpy version (:func:`signatures.hog._cell_histograms_numpy` and the block normalisation in
-:func:`signatures.hog.fhog`) makes about thirty passes over a level's pixels and cells -- scaling,
+The numpy version (:func:`scenesig.signatures.hog._cell_histograms_numpy` and the block normalisation in
+:func:`scenesig.signatures.hog.fhog`) makes about thirty passes over a level's pixels and cells -- scaling,
 clipping, flooring, two weighted ``np.bincount``, the 1-3-3-1 spatial taps, four normalisations --
 each a separate array and, for a tracking detector's small regions, a separate trip through the
 interpreter.  Here one loop does the votes, one the taps and one the normalisation, with the same
@@ -20,13 +20,13 @@ arithmetic in the same order:
 
 So every feature, map and detection is unchanged (``tests/test_signatures_hog.py`` compares the two
 on random, synthetic and rendered images, gray and colour).  Without numba, or with the environment
-variable ``SCENESIG_NUMPY_HOG=1``, :mod:`signatures.hog` runs the numpy code.
+variable ``SCENESIG_NUMPY_HOG=1``, :mod:`scenesig.signatures.hog` runs the numpy code.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from surveys.compiled import AVAILABLE, lazy_njit
+from scenesig.surveys.compiled import AVAILABLE, lazy_njit
 
 __all__ = ["AVAILABLE", "cell_histograms", "normalise", "warm_up"]
 
@@ -149,7 +149,7 @@ _NORMALISE = lazy_njit(_normalise)
 def normalise(hist: np.ndarray, insens: np.ndarray, energy: np.ndarray, clip: float, eps: float) -> np.ndarray:
     """(hc, wc, 31) FHOG features from the (hc, wc, 18) histograms, their (hc, wc, 9) contrast-insensitive
     sums and those sums' squared norms ``energy`` (computed by the caller with ``np.einsum``, whose
-    float32 sum order is numpy's own): the block normalisation of :func:`signatures.hog.fhog`, in the
+    float32 sum order is numpy's own): the block normalisation of :func:`scenesig.signatures.hog.fhog`, in the
     same float32 operations and order."""
     return _NORMALISE(np.ascontiguousarray(hist, np.float32), np.ascontiguousarray(insens, np.float32),
                       np.ascontiguousarray(energy, np.float32), np.float32(clip), np.float32(eps))

@@ -6,7 +6,7 @@ altered copies of the images it has (gamma, contrast, colour casts, blur, noise,
 synthetic "snow"), each with a small known horizontal shift that stands in for a heading change.
 :func:`synthesise` appends such copies to a place's real images (heading benchmark, webcam benchmark,
 map builder); :func:`relight` imitates night, fog and snow more strongly, for the single-experience
-settings that ask for it (:mod:`signatures.experience`).
+settings that ask for it (:mod:`scenesig.signatures.experience`).
 """
 from __future__ import annotations
 

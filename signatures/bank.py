@@ -18,7 +18,7 @@ Search windows restrict the rows and columns that are unrolled, and (:meth:`Bank
 of each level whose features are computed at all.
 
 Given an image, :meth:`Bank.detect` describes and scores each level as one task and runs the
-levels on ``threads`` threads (:func:`signatures.hog.thread_map`): a level's HOG and its filter
+levels on ``threads`` threads (:func:`scenesig.signatures.hog.thread_map`): a level's HOG and its filter
 responses are computed exactly as one thread would, so the detections do not depend on the count.
 """
 from __future__ import annotations
@@ -29,10 +29,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from surveys.settings import merge_settings
+from scenesig.surveys.settings import merge_settings
 
-from signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
-from signatures.hog import (REGION_MARGIN_CELLS, assemble_pyramid, build_level, level_plan, level_scale,
+from scenesig.signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
+from scenesig.signatures.hog import (REGION_MARGIN_CELLS, assemble_pyramid, build_level, level_plan, level_scale,
                             level_size, thread_map, as_hog_input, tune_malloc, window_cell)
 
 __all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce", "limit_blas_threads"]
@@ -114,7 +114,7 @@ class Classifier:
         ``(a, b)``: detection probability ``lambda = 1 / (1 + exp(-(a * score + b)))`` (Platt scaling
         fitted on held-out partitions during mining).
     hog : dict
-        HOG parameters the filter expects (see :data:`signatures.hog.default_config`).
+        HOG parameters the filter expects (see :data:`scenesig.signatures.hog.default_config`).
     shape_index : int
         Index of the shape in the candidate template (-1 if unknown).
     kind : str
@@ -396,7 +396,7 @@ class Bank:
         ----------
         image : ndarray, ScaledImages or HogPyramid
             The image (gray or BGR), the image with its levels' resizes
-            (:class:`signatures.hog.ScaledImages`, the same detections), or its pyramid (built with
+            (:class:`scenesig.signatures.hog.ScaledImages`, the same detections), or its pyramid (built with
             this bank's HOG parameters and the needed levels, e.g. by :meth:`pyramid`).
         windows : ndarray, shape (n, 4), optional
             Per-classifier search window ``x_min, y_min, x_max, y_max`` (input pixels) for the
@@ -471,7 +471,7 @@ def _pyramid_extent(table, need, windows) -> dict:
 
 
 def _level_cost(p, cfg) -> float:
-    """Pixels a :func:`signatures.hog.build_level` task of :func:`signatures.hog.level_plan` describes
+    """Pixels a :func:`scenesig.signatures.hog.build_level` task of :func:`scenesig.signatures.hog.level_plan` describes
     (to start the largest levels first)."""
     _, (lw, lh), box = p
     if box is None:
@@ -497,7 +497,7 @@ def _range_table(classifiers, levels, geom: dict, cell: int, windows):
 
     ``geom`` maps each available level to ``(hc, wc, sx, sy)`` (cells, scale).  The ranges
     ``[r0, r1] x [c0, c1]`` (inclusive) hold the top-left cells of the windows whose centre lies in
-    the classifier's search window (:func:`signatures.hog.window_cell` of its corners; the whole
+    the classifier's search window (:func:`scenesig.signatures.hog.window_cell` of its corners; the whole
     level for a NaN window).  Returns int arrays ``i, k, fh, fw, r0, r1, c0, c1``, pairs in
     classifier order and each classifier's levels in its order.
     """

@@ -15,7 +15,7 @@ Jin et al. apply EHM *locally*: the sensed image is cut into a 5 x 5 grid of non
 windows, each window's reference is the matching sub-image of the geo-referenced image (found with
 the current estimate of position, scale and rotation), and each window's histogram -- per R, G, B
 channel -- is transferred exactly to its reference window's, rescaled to the window's pixel count
-(their eq. 2).  The aerial localiser (:mod:`aerial.mrsmcc`) iterates this with its pose estimate;
+(their eq. 2).  The aerial localiser (:mod:`scenesig.aerial.mrsmcc`) iterates this with its pose estimate;
 the scene-signature side can use the same functions for single-image robustness.
 """
 from __future__ import annotations

@@ -5,15 +5,15 @@ that converges has then been trained on real changes of appearance.  With one ru
 of a GRIEF ``sequence`` place, one webcam image at noon, a map built from one survey) mining sees one
 appearance and its synthesised copies only.  What helps such a bank is measured in
 ``docs/single_experience.md``; the settings that were kept are collected here, and every user of
-single-experience banks -- the heading benchmark (:mod:`signatures.heading`), the webcam benchmark
-and the map builder (:mod:`mapping.build`) -- applies them through :func:`settings_for` with the
+single-experience banks -- the heading benchmark (:mod:`scenesig.signatures.heading`), the webcam benchmark
+and the map builder (:mod:`scenesig.mapping.build`) -- applies them through :func:`settings_for` with the
 one rule that reads training data only: **the number of real appearances** (runs, sessions, images
 that are not synthesised copies) the bank is mined from.  Banks from more appearances take the
 paper's path unchanged.
 """
 from __future__ import annotations
 
-from surveys.settings import merge_settings
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "applies", "settings_for"]
 
@@ -48,7 +48,7 @@ def settings_for(appearances: int, mining: dict | None = None, config: dict | No
     appearances : int
         Real training appearances of the place (synthesised copies do not count).
     mining : dict, optional
-        The caller's overrides of :data:`signatures.mining.default_config`.
+        The caller's overrides of :data:`scenesig.signatures.mining.default_config`.
     config : dict, optional
         Overrides of :data:`default_config`.
 

@@ -9,7 +9,7 @@ live image is compared with all of them at once -- a dot product per stored desc
 Two descriptors are provided (``kind``):
 
 ``"hog"`` (default)
-    FHOG (:func:`signatures.hog.fhog`, the features the banks themselves use) of the gray image
+    FHOG (:func:`scenesig.signatures.hog.fhog`, the features the banks themselves use) of the gray image
     area-resized to ``width`` pixels, at ``cell`` pixels per cell; the cells' 31-vectors are
     flattened, the mean removed and the result L2-normalised.  Gradient orientation survives
     illumination changes better than intensity.

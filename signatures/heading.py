@@ -18,7 +18,7 @@ scene is estimated from a bank of scene signatures of that place that never saw 
   external negatives.  Live images are never used in training.  ``SignatureHeading(single=True)``
   (``scenesig bench heading --single``) applies this protocol to a sessions layout too: each
   session becomes a one-image map of its places, a development set for single-experience
-  settings.  Such banks take the settings :mod:`signatures.experience` keeps for one appearance.
+  settings.  Such banks take the settings :mod:`scenesig.signatures.experience` keeps for one appearance.
 
 Detection: every classifier is searched in the map image near its trained position (the map image's
 alignment is known) and in the live image over the whole width and within ``live_search_y_px`` of
@@ -27,7 +27,7 @@ with ``x_live - x_map``.  The estimate is the weighted mode of the votes (denses
 ``vote_window_px``), refined by the weighted median of the votes in that window.
 
 Vote weights: ``(lambda_map * lambda_live) ** prob_weight`` times ``1 / (1 + (s_x / 6 px)^2)^2``,
-where ``s_x`` is the classifier's training spread (:attr:`signatures.bank.Classifier.spread`): how
+where ``s_x`` is the classifier's training spread (:attr:`scenesig.signatures.bank.Classifier.spread`): how
 far its firings in the training sessions strayed from the ground-truth alignment.  Signatures on
 near structure move with the robot's position (parallax), not only with its heading, and are the
 main source of error on stromovka.
@@ -53,11 +53,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from signatures import hog as hogmod
-from signatures import experience, mining
-from signatures.augment import augment, synthesise
-from signatures.colour import local_exact_histogram_match
-from surveys.settings import merge_settings
+from scenesig.signatures import hog as hogmod
+from scenesig.signatures import experience, mining
+from scenesig.signatures.augment import augment, synthesise
+from scenesig.signatures.colour import local_exact_histogram_match
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "bank_config", "SignatureHeading", "estimate_heading_signatures", "vote_displacement",
            "augment"]
@@ -211,7 +211,7 @@ class SignatureHeading:
     def __init__(self, dataset, config: dict | None = None, n_jobs: int = 1, progress: bool = True,
                  single: bool = False):
         if isinstance(dataset, (str, Path)):
-            from surveys.grief import load
+            from scenesig.surveys.grief import load
             dataset = load(dataset)
         self.dataset = dataset
         self.config = merge_settings(default_config, config, "heading",

@@ -3,7 +3,7 @@
 Every classifier of a place (and the mining of all 296 candidate shapes) reads from the same
 pyramid, so the pyramid is the only per-image cost that scales with resolution; it is written for
 speed: gradients with OpenCV, orientation and spatial binning and block normalisation in compiled
-loops (:mod:`signatures._hog_kernel`, numba), which give bit for bit the features of the numpy
+loops (:mod:`scenesig.signatures._hog_kernel`, numba), which give bit for bit the features of the numpy
 code kept beside them (two weighted ``np.bincount`` passes, normalisation vectorised over the
 cell grid; used without numba).
 
@@ -40,8 +40,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from signatures import _hog_kernel
-from surveys.settings import merge_settings
+from scenesig.signatures import _hog_kernel
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "FEATURE_DIM", "fhog", "HogPyramid", "build_pyramid", "level_scale",
            "level_size", "window_cell", "resize_area_region", "to_gray_float", "REGION_MARGIN_CELLS",
@@ -101,7 +101,7 @@ def tune_malloc() -> bool:
 
 
 def load_compiled() -> None:
-    """Load the compiled HOG loops (:mod:`signatures._hog_kernel`) now rather than at the first
+    """Load the compiled HOG loops (:mod:`scenesig.signatures._hog_kernel`) now rather than at the first
     image: about half a second from numba's cache, a few seconds the very first time."""
     if _hog_kernel.AVAILABLE and not _NUMPY_ONLY:
         _hog_kernel.warm_up()
@@ -154,7 +154,7 @@ class ScaledImages:
 
     The resizes depend on the image alone -- not on which levels or cells a detector will search --
     so a replay makes them for the next frame on a worker thread while the current frame is solved
-    (:meth:`localiser.pipeline.SignatureLocaliser.prepare`).  :func:`build_level` then takes a
+    (:meth:`scenesig.localiser.pipeline.SignatureLocaliser.prepare`).  :func:`build_level` then takes a
     level's region from here, with the values it would have computed bit for bit:
 
     * resizes: :func:`resize_area_region` equals the crop of OpenCV's resize for integer-valued
@@ -267,7 +267,7 @@ def _cell_histograms(img: np.ndarray, cell: int) -> np.ndarray:
 
 
 def _cell_histograms_numpy(mag: np.ndarray, ang: np.ndarray, hc: int, wc: int, cell: int) -> np.ndarray:
-    """:func:`_cell_histograms` from the gradients in numpy (the reference of :mod:`signatures._hog_kernel`,
+    """:func:`_cell_histograms` from the gradients in numpy (the reference of :mod:`scenesig.signatures._hog_kernel`,
     and the code path without numba)."""
     h, w = hc * cell, wc * cell
     # Linear vote between the two nearest of 18 bins centred at 0, 20, .. 340 degrees.

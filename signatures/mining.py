@@ -1,6 +1,6 @@
 """Iterative discriminative clustering of candidate shapes for one place (McManus et al. 2015, §3.2, Fig. 3).
 
-For every candidate shape of the fixed template (:mod:`signatures.shapes`):
+For every candidate shape of the fixed template (:mod:`scenesig.signatures.shapes`):
 
 1. **Partitions.**  The place's images are split into ``n_partitions`` (3) groups, each spanning as
    much appearance as possible: the images are ordered so that similar ones are adjacent (leaf
@@ -53,12 +53,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from surveys.validation import check_image
-from surveys.settings import merge_settings
+from scenesig.surveys.validation import check_image
+from scenesig.surveys.settings import merge_settings
 
-from signatures import hog as hogmod
-from signatures.bank import Bank, Classifier
-from signatures.shapes import ShapeSet, candidate_shapes
+from scenesig.signatures import hog as hogmod
+from scenesig.signatures.bank import Bank, Classifier
+from scenesig.signatures.shapes import ShapeSet, candidate_shapes
 
 __all__ = ["default_config", "mine_place", "partition_images", "shape_geometry", "MiningStats"]
 
@@ -677,8 +677,8 @@ def _refine_nominal(classifiers, pyramids, offsets, cfg, images_of) -> None:
 
 def _fold_whitening(classifiers, cfg) -> None:
     """Turn filters trained on whitened HOG into equivalent raw-HOG filters (in place): the bank,
-    the detector and map files then need nothing new (:func:`signatures.whiten.fold_filter`)."""
-    from signatures.whiten import fold_filter
+    the detector and map files then need nothing new (:func:`scenesig.signatures.whiten.fold_filter`)."""
+    from scenesig.signatures.whiten import fold_filter
 
     for c in classifiers:
         c.weights, c.bias = fold_filter(c.weights, c.bias, int(cfg["whiten_radius"]),
@@ -778,7 +778,7 @@ def mine_place(images, offsets=None, config: dict | None = None, negatives=None,
         Precomputed pyramids of ``images`` / ``negatives`` (must hold the needed levels); images
         are then only used for the partition descriptor.
     shapes : ShapeSet, optional
-        Candidate shapes (default: :func:`signatures.shapes.candidate_shapes` of the image size).
+        Candidate shapes (default: :func:`scenesig.signatures.shapes.candidate_shapes` of the image size).
     progress : bool
         Show a progress bar over shapes.
 
@@ -823,7 +823,7 @@ def mine_place(images, offsets=None, config: dict | None = None, negatives=None,
     if len(pyramids) != n:
         raise ValueError(f"got {len(pyramids)} pyramids for {n} images")
     if cfg["whiten"]:
-        from signatures.whiten import whiten_pyramid
+        from scenesig.signatures.whiten import whiten_pyramid
         wr, wg = int(cfg["whiten_radius"]), float(cfg["whiten_reg"])
         pyramids = [whiten_pyramid(p, wr, wg) for p in pyramids]
         negative_pyramids = [whiten_pyramid(p, wr, wg) for p in negative_pyramids]

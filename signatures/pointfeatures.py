@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from surveys.settings import merge_settings
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "PointFeatures", "Matches", "Vote", "extract", "match", "gms_filter",
            "gms_default_config",

@@ -23,7 +23,7 @@ The background statistics (``data/hog_background.npz``, a few hundred kB) were e
 KITTI raw snippet's two colour cameras (``../shared/data/kitti``; none of the benchmark data sets)
 by::
 
-    python -m signatures.whiten ../shared/data/kitti/2011_09_26_snippet --out signatures/data/hog_background.npz
+    python -m scenesig.signatures.whiten ../shared/data/kitti/2011_09_26_snippet --out signatures/data/hog_background.npz
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from signatures import hog as hogmod
+from scenesig.signatures import hog as hogmod
 
 __all__ = ["BACKGROUND_FILE", "estimate_background", "load_background", "whitening_kernel",
            "whiten_level", "whiten_pyramid", "fold_filter", "main"]
@@ -93,7 +93,7 @@ def estimate_background(images, levels=range(0, 9), hog_config: dict | None = No
 @functools.lru_cache(maxsize=4)
 def load_background(path: str | None = None) -> dict:
     """The background statistics (default: the packaged :data:`BACKGROUND_FILE`)."""
-    from surveys.errors import DataError
+    from scenesig.surveys.errors import DataError
 
     p = Path(path) if path else BACKGROUND_FILE
     try:
@@ -207,12 +207,12 @@ def fold_filter(weights: np.ndarray, bias: float, radius: int = 1, reg: float = 
 
 
 def main(argv=None) -> int:
-    """``python -m signatures.whiten KITTI_DRIVE --out FILE``: re-estimate the background statistics."""
+    """``python -m scenesig.signatures.whiten KITTI_DRIVE --out FILE``: re-estimate the background statistics."""
     import cv2
 
-    from surveys.io import atomic_path
+    from scenesig.surveys.io import atomic_path
 
-    ap = argparse.ArgumentParser(prog="python -m signatures.whiten", description=main.__doc__)
+    ap = argparse.ArgumentParser(prog="python -m scenesig.signatures.whiten", description=main.__doc__)
     ap.add_argument("drive", help="a KITTI raw drive folder (image_02/data, image_03/data)")
     ap.add_argument("--out", default=str(BACKGROUND_FILE))
     ap.add_argument("--every", type=int, default=3, help="every N-th frame of each camera")

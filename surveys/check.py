@@ -1,18 +1,18 @@
 """Vet a survey run before a long job: every file parsed, every image decoded strictly, timing sane.
 
-:func:`check_run` does not stop at the first problem as :func:`surveys.run.read_run` does: it reads
+:func:`check_run` does not stop at the first problem as :func:`scenesig.surveys.run.read_run` does: it reads
 each file on its own and reports every problem it finds as a :class:`Problem` (file, line, reason),
 so one pass over a copied camera log lists everything to fix.
 
 Checked:
 
 * ``run.toml``, ``frames.csv``, ``odometry.csv``, ``gps.csv`` and the TUM files parse, by the rules of
-  :func:`surveys.run.read_run` -- but a bad line does not end the file's check: every line is checked
+  :func:`scenesig.surveys.run.read_run` -- but a bad line does not end the file's check: every line is checked
   (column count, numbers, NaN/inf, quaternions) and every step where the timestamps do not increase is
   reported, so both a NaN and unsorted timestamps in one ``odometry.csv`` are listed (at most
   :data:`MAX_PER_KIND` lines per problem and file, then a count), and the images of a ``frames.csv``
   with a bad line are still checked (those of its readable lines);
-* every image listed in ``frames.csv`` decodes strictly (:mod:`surveys.images`) at the size
+* every image listed in ``frames.csv`` decodes strictly (:mod:`scenesig.surveys.images`) at the size
   ``run.toml`` states;
 * rates: each stream's measured rate (median interval) against its nominal rate in ``run.toml``
   (``camera_hz``, ``odometry_hz``, ``ins_hz``, ``gps_hz``) -- more than 10 % off is a warning;

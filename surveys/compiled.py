@@ -1,6 +1,6 @@
 """Loops compiled with numba, loaded on first use.
 
-:mod:`signatures._hog_kernel` (HOG) and :mod:`localiser._solver_kernel` (the eq. 10 solver) compile
+:mod:`scenesig.signatures._hog_kernel` (HOG) and :mod:`scenesig.localiser._solver_kernel` (the eq. 10 solver) compile
 their per-pixel and per-detection loops the same way: numba's ``njit`` with ``cache=True`` (compiled
 once per machine, then loaded from ``__pycache__``) and ``nogil=True`` (other threads run meanwhile).
 numba is imported at the first call, so commands that never run such a loop do not pay its import

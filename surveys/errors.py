@@ -30,7 +30,7 @@ class DataError(ValueError):
 
 
 class CorruptImageError(DataError):
-    """An image that is missing, truncated or does not decode cleanly (see :mod:`surveys.images`).
+    """An image that is missing, truncated or does not decode cleanly (see :mod:`scenesig.surveys.images`).
 
     A separate type because a corrupt camera frame is often survivable: the localiser skips the
     frame, and ``build-map --skip-corrupt`` leaves it out, where any other bad input stops the job.
@@ -42,5 +42,5 @@ class OutputError(DataError):
 
     A :class:`DataError` so that the command line's one error handler reports it as
     ``scenesig: error: FILE: reason`` (exit 2) instead of a traceback; ``path`` is the file that was
-    being written, which is left as it was (see :mod:`surveys.io`).
+    being written, which is left as it was (see :mod:`scenesig.surveys.io`).
     """

@@ -24,7 +24,7 @@ The protocol pairs (:meth:`GriefDataset.pairs`): every ordered (map i, live j) p
 place for ``sessions``; (season_00 frame k, season_s frame k) for every k and s >= 1 for
 ``sequence`` (the published summer-map / winter-live direction).
 
-Images load lazily; file-format problems raise :class:`surveys.errors.DataError` naming the file
+Images load lazily; file-format problems raise :class:`scenesig.surveys.errors.DataError` naming the file
 and, where there is one, the line.
 
 Examples
@@ -45,7 +45,7 @@ from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 
-from surveys.errors import DataError
+from scenesig.surveys.errors import DataError
 
 __all__ = ["load", "detect_layout", "GriefDataset", "GriefPlace", "GriefPair", "PlaceImageSet",
            "IMAGE_SUFFIXES"]
@@ -488,6 +488,6 @@ def _load_sequence(root: Path) -> GriefDataset:
 
 
 def _imread(path: Path, gray: bool) -> np.ndarray:
-    from surveys.images import read_image  # local: keeps `import surveys.grief` light for metadata-only tools
+    from scenesig.surveys.images import read_image  # local: keeps `import surveys.grief` light for metadata-only tools
 
     return read_image(path, gray)

@@ -15,7 +15,7 @@ use and the map builder would mine signatures from.  Here
   has none), then OpenCV decodes it.
 * other formats (PPM, BMP, TIFF: the GRIEF originals) must decode with OpenCV.
 
-Every failure raises :class:`surveys.errors.CorruptImageError` naming the file.
+Every failure raises :class:`scenesig.surveys.errors.CorruptImageError` naming the file.
 """
 from __future__ import annotations
 

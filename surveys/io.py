@@ -9,7 +9,7 @@ rename survives a power cut.  Journals (``journal.jsonl``, ``build_stats.jsonl``
 :func:`append_line`, which cuts a failed append back off, so a torn line never precedes the next one.
 
 A failed write (ENOSPC, EACCES, EROFS, EDQUOT...) removes its temporary file and raises
-:class:`surveys.errors.OutputError` naming the file, which the command line reports as
+:class:`scenesig.surveys.errors.OutputError` naming the file, which the command line reports as
 ``scenesig: error: FILE: reason`` (exit 2).  The final name is untouched, so whatever an earlier run
 finished is kept and a rerun after freeing space resumes from it.  Bytes go through ``os.write`` on
 a raw descriptor, so a test can inject a full disk at the system-call boundary, where a real one

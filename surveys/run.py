@@ -17,7 +17,7 @@ meaningful.  The increment between samples k-1 and k is ``inv(P[k-1]) @ P[k]`` (
 :meth:`SurveyRun.odometry_increments`).  Storing poses rather than increments keeps the file
 loss-free under resampling and lets any rate be used.
 
-Every problem found on reading raises :class:`surveys.errors.DataError` naming the file and line.
+Every problem found on reading raises :class:`scenesig.surveys.errors.DataError` naming the file and line.
 """
 from __future__ import annotations
 
@@ -78,9 +78,9 @@ class SurveyRun:
         return self.root / self.frame_files[i]
 
     def image(self, i: int, gray: bool = False) -> np.ndarray:
-        """Load frame ``i`` (BGR uint8, or gray) from disk, decoded strictly (:mod:`surveys.images`).
+        """Load frame ``i`` (BGR uint8, or gray) from disk, decoded strictly (:mod:`scenesig.surveys.images`).
 
-        Raises :class:`surveys.errors.CorruptImageError` (a :class:`DataError`) naming the file if it
+        Raises :class:`scenesig.surveys.errors.CorruptImageError` (a :class:`DataError`) naming the file if it
         is missing, truncated, corrupt or not the size ``run.toml`` states; nothing is cached.
         """
         path = self.image_path(i)

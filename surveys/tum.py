@@ -1,7 +1,7 @@
 """TUM trajectory files: ``t tx ty tz qx qy qz qw`` per line, '#' comments allowed.
 
 Kept apart from the math (as evo does): this module only reads and writes; poses come back as
-4x4 matrices via :mod:`surveys.geometry`.
+4x4 matrices via :mod:`scenesig.surveys.geometry`.
 """
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 Library functions check their array inputs here, so the same mistake gets the same message everywhere:
 the argument's name, the expected shape and what is wrong.  Each check returns the input as a float (or
 image) array, so callers write ``T = check_pose(T, "T_world_place")``.  Bad *files* are reported as
-:class:`surveys.errors.DataError` by the readers (:func:`csv_header` is their shared check of a CSV file's
+:class:`scenesig.surveys.errors.DataError` by the readers (:func:`csv_header` is their shared check of a CSV file's
 header); the array checks raise ``ValueError`` for bad arguments.
 """
 from __future__ import annotations
@@ -15,8 +15,8 @@ __all__ = ["check_array", "check_pose", "check_poses", "check_covariance", "chec
 
 def csv_header(reader, path, required) -> list[str]:
     """The stripped header row of a CSV file being read with ``reader`` (a :func:`csv.reader`); raises
-    :class:`surveys.errors.DataError` naming ``path`` when the file is empty or lacks a ``required`` column."""
-    from surveys.errors import DataError
+    :class:`scenesig.surveys.errors.DataError` naming ``path`` when the file is empty or lacks a ``required`` column."""
+    from scenesig.surveys.errors import DataError
 
     header = next(reader, None)
     if header is None:

@@ -28,8 +28,8 @@ CONFIG = {
 
 def tiny_runs(base: Path):
     """The simulated runs (simulated on first use into ``base/tiny_runs``), reference (sunny) first."""
-    from surveys.run import read_run
-    from surveys.sim.simulate import simulate
+    from scenesig.surveys.run import read_run
+    from scenesig.surveys.sim.simulate import simulate
 
     root = Path(base) / "tiny_runs"
     if not (root / "simulate_summary.json").exists():
@@ -42,7 +42,7 @@ def tiny_runs(base: Path):
 
 def tiny_map(base: Path, jobs: int = 2) -> Path:
     """The reference map of the tiny world: a local joblib build (``base/tiny_map``), built on first use."""
-    from mapping.build import build_map
+    from scenesig.mapping.build import build_map
 
     runs = tiny_runs(base)
     root = Path(base) / "tiny_map"

@@ -19,8 +19,8 @@ def grief_root():
 
 def make_run(n_frames=5, with_truth=True, size=(64, 48), seed=0):
     """A small synthetic SurveyRun (in memory) and its images."""
-    from surveys.geometry import Camera, make_pose, rot_z, CAMERA_FROM_VEHICLE_AXES
-    from surveys.run import SurveyRun
+    from scenesig.surveys.geometry import Camera, make_pose, rot_z, CAMERA_FROM_VEHICLE_AXES
+    from scenesig.surveys.run import SurveyRun
 
     rng = np.random.default_rng(seed)
     w, h = size

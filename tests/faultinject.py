@@ -1,6 +1,6 @@
 """Write failures injected at the system-call boundary, as a full disk or a read-only folder causes them.
 
-Every result file goes through :mod:`surveys.io`, which writes with ``os.open`` / ``os.write``;
+Every result file goes through :mod:`scenesig.surveys.io`, which writes with ``os.open`` / ``os.write``;
 these helpers make those calls fail for files under one folder only (found through /proc/self/fd),
 after an optional number of bytes, exactly where a real ENOSPC or EACCES would strike.
 """

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from localiser.pipeline import Measurement, WeakLocaliser
-from localiser.solver import LocalisationConstraint, pose_exp
-from mapping.store import MapWriter, PlaceData
-from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, interpolate_poses, invert, make_pose, rot_y, rot_z
-from surveys.run import SurveyRun, write_run
+from scenesig.localiser.pipeline import Measurement, WeakLocaliser
+from scenesig.localiser.solver import LocalisationConstraint, pose_exp
+from scenesig.mapping.store import MapWriter, PlaceData
+from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, interpolate_poses, invert, make_pose, rot_y, rot_z
+from scenesig.surveys.run import SurveyRun, write_run
 
 HZ = 20.0
 SPEED = 9.0             # m/s: 0.45 m per frame, so 20 m is not a whole number of steps
@@ -53,7 +53,7 @@ def make_live_run(folder, length_m=90.0, seed=0, odometry_bias=(0.0, 0.0, 4e-4, 
     and white noise, so dead reckoning drifts; INS/GPS: truth with a slowly wandering offset
     (~0.3 m, ~0.3 deg).
     """
-    from surveys.run import read_run
+    from scenesig.surveys.run import read_run
 
     rng = np.random.default_rng(seed)
     n = int(round(length_m / SPEED * HZ)) + 1
@@ -103,7 +103,7 @@ def make_map(folder, length_m=120.0, spacing=10.0, camera=None, T_vehicle_camera
     ``T_map_world``: a georeferencing error -- the places are at ``T_map_world @ truth`` and record their
     truth (``extra["T_truth_place"]``) as a simulated map does.
     """
-    from mapping.store import MapStore
+    from scenesig.mapping.store import MapStore
 
     s = np.arange(spacing / 2, length_m, spacing)
     poses = truth_poses(s)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, make_pose, rot_z
+from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, make_pose, rot_z
 
 CAMERA = Camera(250.0, 250.0, 159.5, 119.5, 320, 240)
 T_VC = make_pose(CAMERA_FROM_VEHICLE_AXES, [0.0, 0.0, 1.5])

@@ -7,14 +7,14 @@ import cv2
 import numpy as np
 import pytest
 
-from aerial import affine as aff
-from aerial.geo import load_tiles
-from aerial.landmarks import LandmarkModel
-from aerial.mrsmcc import MRSMCC
-from aerial.sism import SISM
-from aerial.trials import cut_sensed, make_trial, photometric_change, sensed_centre
-from signatures.colour import exact_histogram_match, grid_edges, local_exact_histogram_match
-from surveys.errors import DataError
+from scenesig.aerial import affine as aff
+from scenesig.aerial.geo import load_tiles
+from scenesig.aerial.landmarks import LandmarkModel
+from scenesig.aerial.mrsmcc import MRSMCC
+from scenesig.aerial.sism import SISM
+from scenesig.aerial.trials import cut_sensed, make_trial, photometric_change, sensed_centre
+from scenesig.signatures.colour import exact_histogram_match, grid_edges, local_exact_histogram_match
+from scenesig.surveys.errors import DataError
 
 WILDNAV = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "wildnav"
 
@@ -216,7 +216,7 @@ def test_real_wildnav_tiles_geometry():
 
 
 def test_benchmark_json_contract_and_determinism(tmp_path):
-    from benchmarks.aerial import run_benchmark
+    from scenesig.benchmarks.aerial import run_benchmark
 
     root = _write_tiles(tmp_path / "tiles")
     out = tmp_path / "out" / "aerial.json"
@@ -240,8 +240,8 @@ def test_benchmark_json_contract_and_determinism(tmp_path):
 
 
 def test_localise_sequence_writes_track(tmp_path):
-    from aerial.localise import localise_sequence
-    from aerial.trials import write_sequence
+    from scenesig.aerial.localise import localise_sequence
+    from scenesig.aerial.trials import write_sequence
 
     root = _write_tiles(tmp_path / "tiles")
     tiles = load_tiles(root)

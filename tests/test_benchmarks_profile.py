@@ -3,8 +3,8 @@ import json
 
 import numpy as np
 
-from benchmarks import profile_localise, profile_mining
-from benchmarks._stages import StageTimer
+from scenesig.benchmarks import profile_localise, profile_mining
+from scenesig.benchmarks._stages import StageTimer
 
 from pipeline_world import make_live_run, make_map
 
@@ -36,7 +36,7 @@ class _Work:
 
 
 def test_stage_timer_is_exclusive_and_restores(monkeypatch):
-    from benchmarks import _stages
+    from scenesig.benchmarks import _stages
 
     monkeypatch.setattr(_stages, "time", _CLOCK)
     timer = StageTimer()
@@ -55,7 +55,7 @@ def test_stage_timer_is_exclusive_and_restores(monkeypatch):
 
 
 def test_profile_mining_reports_the_stages():
-    from localiser.synthetic import synthetic_place
+    from scenesig.localiser.synthetic import synthetic_place
 
     images, offsets = synthetic_place(4, 128, 96, seed=0)
     res = profile_mining.profile_mining(images, offsets, shapes=6)
@@ -88,7 +88,7 @@ def test_profile_localise_reports_the_stages(tmp_path, capsys):
 
 
 def test_median_ms_unqueued_is_at_most_the_wall_time():
-    from benchmarks._timing import median_ms_unqueued, queued_seconds
+    from scenesig.benchmarks._timing import median_ms_unqueued, queued_seconds
 
     wall, unqueued = median_ms_unqueued(lambda: sum(range(20000)), repeat=5)
     assert wall > 0

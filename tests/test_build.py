@@ -15,7 +15,7 @@ import pytest
 
 from build_world import CONFIG, map_contents, tiny_map, tiny_runs
 
-pytest.importorskip("surveys.sim.simulate")
+pytest.importorskip("scenesig.surveys.sim.simulate")
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -35,7 +35,7 @@ def _assert_same_map(a: dict, b: dict, what: str):
 
 def test_dask_and_resumed_builds_give_the_local_build_bytes(world, tmp_path):
     distributed = pytest.importorskip("distributed")
-    from mapping.build import build_map
+    from scenesig.mapping.build import build_map
 
     runs, local = world
     reference = map_contents(local)
@@ -92,8 +92,8 @@ def test_build_stopped_right_after_a_place_file_keeps_its_stats(world, tmp_path,
     """The deterministic form of the SIGKILL race above: the build dies just after a place's file is
     written.  The re-run skips that place, so its stats must already be on disk -- the summary must
     be the uninterrupted build's."""
-    from mapping import store as store_mod
-    from mapping.build import build_map
+    from scenesig.mapping import store as store_mod
+    from scenesig.mapping.build import build_map
 
     runs, local = world
     original = store_mod.MapWriter.write_place
@@ -148,10 +148,10 @@ def test_build_summary_schema_and_values(world):
 def test_stored_filters_detect_like_the_originals(world):
     """The store keeps bank filters as float16 with fewer mantissa bits where the row error allows it:
     every detection over the place's window frames must stay where it was, at the same level."""
-    from mapping import places as places_mod
-    from mapping.build import build_place
-    from mapping.store import decode_place, encode_place
-    from signatures.bank import Bank
+    from scenesig.mapping import places as places_mod
+    from scenesig.mapping.build import build_place
+    from scenesig.mapping.store import decode_place, encode_place
+    from scenesig.signatures.bank import Bank
 
     runs, local = world
     ref = runs[0]

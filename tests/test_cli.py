@@ -45,7 +45,7 @@ def test_every_command_module_registers_a_runner():
 
 def test_every_benchmark_module_has_main():
     for module, _ in BENCHMARKS.values():
-        assert callable(importlib.import_module(f"benchmarks.{module}").main)
+        assert callable(importlib.import_module(f"scenesig.benchmarks.{module}").main)
 
 
 def test_data_error_is_exit_2_with_one_message(tmp_path, capsys):

@@ -102,7 +102,7 @@ def test_localise_jobs_share_point_features_by_run_and_kind():
 
 
 def test_demo_localise_benchmark_refuses_to_write_into_the_demo(tmp_path):
-    from benchmarks.demo_localise import benchmark
+    from scenesig.benchmarks.demo_localise import benchmark
 
     with pytest.raises(ValueError, match="inside the demo folder"):
         benchmark(tmp_path, tmp_path / "again")
@@ -111,7 +111,7 @@ def test_demo_localise_benchmark_refuses_to_write_into_the_demo(tmp_path):
 @pytest.mark.heavy
 def test_demo_localise_benchmark_repeats_the_demo(demo_out, tmp_path):
     """``bench demo_localise --compare`` on the demo: the same localisations, CPU and wall reported."""
-    from benchmarks.demo_localise import main
+    from scenesig.benchmarks.demo_localise import main
 
     assert main([str(demo_out), "--out", str(tmp_path / "loc"), "--compare", "--json", str(tmp_path / "b.json")]) == 0
     res = json.loads((tmp_path / "b.json").read_text())

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from localiser.outputs import TRUTH_KEYS, evaluate_folder, read_frames_csv, write_outputs
-from localiser.replay import replay
+from scenesig.localiser.outputs import TRUTH_KEYS, evaluate_folder, read_frames_csv, write_outputs
+from scenesig.localiser.replay import replay
 from scenesig.cli import main
-from surveys.run import read_run
+from scenesig.surveys.run import read_run
 
 from pipeline_world import TruthMethod, make_live_run, make_map
 
@@ -115,9 +115,9 @@ def test_bounds_from_the_marginals_are_honest_and_beside_the_trajectory(world, t
     frames and for every frame; ``covariances.csv`` holds what the bounds come from."""
     from evo.tools import file_interface
 
-    from localiser.evaluation import ReferencePath
-    from localiser.uncertainty import INFLATION, Z_95, read_covariances_csv
-    from surveys.geometry import make_pose, rot_z
+    from scenesig.localiser.evaluation import ReferencePath
+    from scenesig.localiser.uncertainty import INFLATION, Z_95, read_covariances_csv
+    from scenesig.surveys.geometry import make_pose, rot_z
 
     root, run, _ = world
     T_off = make_pose(rot_z(0.01), [3.0, -2.0, 0.0])
@@ -150,9 +150,9 @@ def test_bounds_from_the_marginals_are_honest_and_beside_the_trajectory(world, t
 
 
 def _map_relative(res, store):
-    from localiser.evaluation import lateral_heading_errors
-    from localiser.outputs import map_relative_truth, reference_path
-    from surveys.geometry import interpolate_poses
+    from scenesig.localiser.evaluation import lateral_heading_errors
+    from scenesig.localiser.outputs import map_relative_truth, reference_path
+    from scenesig.surveys.geometry import interpolate_poses
 
     run = res.run
     tm = interpolate_poses(run.truth_times, map_relative_truth(store, run.truth_poses), res.times).reshape(-1, 4, 4)
@@ -161,7 +161,7 @@ def _map_relative(res, store):
 
 def test_bounds_grow_while_dead_reckoning(world):
     """Blind stretches: the marginal (and so the bound) grows with the odometry since the last fix."""
-    from localiser.uncertainty import bounds_from_result
+    from scenesig.localiser.uncertainty import bounds_from_result
     from pipeline_world import SPEED
 
     _, run, store = world
@@ -176,7 +176,7 @@ def test_bounds_grow_while_dead_reckoning(world):
 def test_posegraph_covariance_at_a_time_matches_the_latest_and_grows_with_odometry():
     import tempfile
 
-    from localiser.pipeline import Localiser
+    from scenesig.localiser.pipeline import Localiser
 
     with tempfile.TemporaryDirectory() as d:
         run = make_live_run(Path(d) / "live", length_m=30.0)
@@ -197,7 +197,7 @@ def test_posegraph_covariance_at_a_time_matches_the_latest_and_grows_with_odomet
 def tiny(tmp_path_factory):
     """The tiny map and its night run's localisation (shared with tests/test_update.py)."""
     from build_world import tiny_map, tiny_runs
-    from localiser.replay import localise
+    from scenesig.localiser.replay import localise
 
     base = tmp_path_factory.getbasetemp()
     runs = tiny_runs(base)
@@ -220,7 +220,7 @@ def _tree_hash(root: Path) -> str:
 
 def _other_map(root: Path, dst: Path) -> Path:
     """Another map of the same runs and settings: what a second build gives, but for its identity."""
-    from mapping.identity import new_map_id
+    from scenesig.mapping.identity import new_map_id
 
     shutil.copytree(root, dst)
     doc = json.loads((dst / "manifest.json").read_text())
@@ -230,7 +230,7 @@ def _other_map(root: Path, dst: Path) -> Path:
 
 
 def test_localisation_records_the_map_identity(tiny):
-    from mapping.store import MapStore
+    from scenesig.mapping.store import MapStore
 
     root, loc, _ = tiny
     m = json.loads((loc / "metrics.json").read_text())
@@ -280,7 +280,7 @@ def test_map_update_out_onto_a_file_or_a_read_only_place(tiny, tmp_path, capsys)
 def test_map_update_of_an_older_generation_needs_asking(tiny, tmp_path, capsys):
     """A localisation of generation 0 against the map at generation 1: refused (exit 2) unless
     --allow-older-generation; re-running the update that made generation 1 still changes nothing."""
-    from mapping.store import MapStore
+    from scenesig.mapping.store import MapStore
 
     root, loc, _ = tiny
     work = tmp_path / "map"
@@ -308,10 +308,10 @@ def test_map_update_of_an_older_generation_needs_asking(tiny, tmp_path, capsys):
 def test_legacy_map_without_identity_is_read_and_updated(tiny, tmp_path):
     """A map written before identities: readable, its identity derived (the same for every reader); its
     localisations record that identity, and the update writes it into the manifest."""
-    from localiser.outputs import read_localisation
-    from mapping.identity import derived_map_id
-    from mapping.store import MapStore
-    from mapping.update import check_localisations
+    from scenesig.localiser.outputs import read_localisation
+    from scenesig.mapping.identity import derived_map_id
+    from scenesig.mapping.store import MapStore
+    from scenesig.mapping.update import check_localisations
 
     root, loc, _ = tiny
     old = tmp_path / "old"
@@ -337,9 +337,9 @@ def test_aerial_query_outside_every_tile_is_not_localised(tmp_path):
     the tile whose best match failed its checks; the same images on their own tile still localise."""
     import shutil as sh
 
-    from aerial.geo import load_tiles
-    from aerial.localise import localise_sequence
-    from aerial.trials import write_sequence
+    from scenesig.aerial.geo import load_tiles
+    from scenesig.aerial.localise import localise_sequence
+    from scenesig.aerial.trials import write_sequence
     from test_aerial import _write_tiles
 
     root = _write_tiles(tmp_path / "tiles", n=2)
@@ -369,8 +369,8 @@ def test_aerial_query_outside_every_tile_is_not_localised(tmp_path):
 
 def test_build_map_with_a_run_of_another_resolution_exits_2_and_leaves_nothing(tmp_path, capsys):
     from conftest import make_run
-    from surveys.geometry import Camera
-    from surveys.run import write_run
+    from scenesig.surveys.geometry import Camera
+    from scenesig.surveys.run import write_run
 
     ref, images = make_run(n_frames=6, size=(64, 48))
     write_run(ref, tmp_path / "ref", images=images)
@@ -390,8 +390,8 @@ def test_check_reports_every_problem_of_a_run(tmp_path):
     """A swapped frames.csv line does not stop the image checks; NaN and unsorted timestamps in one
     odometry.csv are both reported."""
     from conftest import make_run
-    from surveys.check import check_run
-    from surveys.run import write_run
+    from scenesig.surveys.check import check_run
+    from scenesig.surveys.run import write_run
 
     run, images = make_run(n_frames=12)
     write_run(run, tmp_path / "r", images=images)
@@ -416,7 +416,7 @@ def test_check_reports_every_problem_of_a_run(tmp_path):
 
 def test_fractions_are_clamped():
     """Shares of a distance summed segment by segment can round to 1.0000000000000002: clamped."""
-    from localiser.evaluation import coverage_metrics
+    from scenesig.localiser.evaluation import coverage_metrics
 
     rng = np.random.default_rng(0)
     seen = 0

@@ -4,9 +4,9 @@ import json
 import numpy as np
 import pytest
 
-from localiser.evaluation import (ReferencePath, blind_distances, coverage_metrics, dead_reckoning_curve,
+from scenesig.localiser.evaluation import (ReferencePath, blind_distances, coverage_metrics, dead_reckoning_curve,
                                   evaluate, lateral_heading_errors, summary)
-from surveys.geometry import make_pose, rot_z
+from scenesig.surveys.geometry import make_pose, rot_z
 
 
 def poses_xy_yaw(rows):

@@ -19,8 +19,8 @@ import pytest
 
 from conftest import make_run
 from faultinject import disk_full, folder_bytes, read_only
-from surveys.errors import CorruptImageError, DataError, OutputError
-from surveys.images import decode_image, read_image
+from scenesig.surveys.errors import CorruptImageError, DataError, OutputError
+from scenesig.surveys.images import decode_image, read_image
 
 
 def _jpeg(w=640, h=480, seed=0) -> bytes:
@@ -70,7 +70,7 @@ def test_damaged_png_is_an_error(damage, tmp_path):
 
 
 def test_survey_run_frame_is_decoded_strictly(tmp_path):
-    from surveys.run import read_run, write_run
+    from scenesig.surveys.run import read_run, write_run
 
     run, images = make_run(n_frames=4)
     write_run(run, tmp_path / "r", images=images)
@@ -106,16 +106,16 @@ def _truncate(path: Path) -> None:
 
 
 def test_localise_skips_corrupt_frames_and_counts_them(world, tmp_path, caplog):
-    from localiser.replay import replay, write_outputs
+    from scenesig.localiser.replay import replay, write_outputs
     from pipeline_world import TruthMethod
-    from surveys.run import read_run
+    from scenesig.surveys.run import read_run
 
     root, run, store = world
     shutil.copytree(run.root, tmp_path / "live")
     for i in (4, 8):                                          # detector frames (every 4th)
         _truncate(tmp_path / "live" / run.frame_files[i])
     bad = read_run(tmp_path / "live")
-    with caplog.at_level(logging.WARNING, logger="localiser.replay"):
+    with caplog.at_level(logging.WARNING, logger="scenesig.localiser.replay"):
         res = replay(store, bad, TruthMethod(bad), every=4)
     m = write_outputs(res, store, tmp_path / "out", figure=False)
     assert m["frames_corrupt"] == 2 and m["corrupt_frames"] == [run.frame_files[4], run.frame_files[8]]
@@ -135,8 +135,8 @@ def test_localise_skips_corrupt_frames_and_counts_them(world, tmp_path, caplog):
 # --------------------------------------------------------------------------------------- build-map
 def test_build_map_names_a_corrupt_frame_before_mining(tmp_path, capsys):
     from scenesig.cli import main as cli
-    from mapping.build import vet_images
-    from surveys.run import read_run, write_run
+    from scenesig.mapping.build import vet_images
+    from scenesig.surveys.run import read_run, write_run
 
     run, images = make_run(n_frames=6)
     write_run(run, tmp_path / "r", images=images)
@@ -164,7 +164,7 @@ def _run_check(paths, tmp_path, *extra):
 
 
 def test_check_lists_every_problem_of_a_run(tmp_path, capsys):
-    from surveys.run import write_run
+    from scenesig.surveys.run import write_run
 
     run, images = make_run(n_frames=30)
     run.frame_times = run.frame_times.copy()
@@ -195,7 +195,7 @@ def test_check_lists_every_problem_of_a_run(tmp_path, capsys):
 
 
 def test_check_maps_and_folders(tmp_path, capsys):
-    from surveys.run import write_run
+    from scenesig.surveys.run import write_run
     from test_store import build
 
     run, images = make_run(n_frames=8)
@@ -224,7 +224,7 @@ def test_check_maps_and_folders(tmp_path, capsys):
 
 # --------------------------------------------------------------------------------------- full disk
 def _same_except_timings(a: dict, b: dict):
-    from localiser.replay import TIMING_KEYS
+    from scenesig.localiser.replay import TIMING_KEYS
 
     assert sorted(a) == sorted(b)
     for name in a:
@@ -278,7 +278,7 @@ def test_localise_on_a_full_disk_loses_nothing_and_reruns_to_the_same_bytes(worl
 def test_a_figure_that_cannot_be_written_leaves_nothing(tmp_path):
     """Figures are written by their library (matplotlib) to a temporary name: an OSError there is an
     OutputError naming the figure, and neither the temporary nor the final file is left."""
-    from surveys.io import atomic_path
+    from scenesig.surveys.io import atomic_path
 
     (tmp_path / "fig.png").write_bytes(b"old figure")
     with pytest.raises(OutputError, match=r"fig\.png: could not write: No space left on device \(ENOSPC\)"):
@@ -289,7 +289,7 @@ def test_a_figure_that_cannot_be_written_leaves_nothing(tmp_path):
 
 
 def test_report_on_a_full_disk_keeps_the_previous_page(world, tmp_path, monkeypatch):
-    from localiser.replay import replay, write_outputs
+    from scenesig.localiser.replay import replay, write_outputs
     from scenesig.report import build_report
     from pipeline_world import TruthMethod
 
@@ -314,7 +314,7 @@ def test_report_on_a_full_disk_keeps_the_previous_page(world, tmp_path, monkeypa
 
 
 def test_map_writer_on_a_full_disk_resumes_to_the_same_bytes(tmp_path, monkeypatch):
-    from mapping.store import JOURNAL, MapWriter
+    from scenesig.mapping.store import JOURNAL, MapWriter
     from test_store import CAM, N_PLACES, PARAMS, T_VC, build, make_place, places_meta
 
     reference = folder_bytes(build(tmp_path / "ref"))
@@ -359,8 +359,8 @@ def test_realtime_keeps_up_with_both_cores_loaded(world, tmp_path, monkeypatch):
     """Two CPU hogs (bounded: they stop on their own) and an odometry update that costs more CPU than
     the odometry rate allows: the replay still ends on time, the odometry backlog stays bounded by
     composing late samples, stale frames are dropped, and it still localises."""
-    from localiser import pipeline
-    from localiser.replay import replay, write_outputs
+    from scenesig.localiser import pipeline
+    from scenesig.localiser.replay import replay, write_outputs
     from pipeline_world import TruthMethod
 
     root, run, store = world
@@ -398,7 +398,7 @@ def test_realtime_keeps_up_with_both_cores_loaded(world, tmp_path, monkeypatch):
 # --------------------------------------------------------------------------------------- heavy: real builds
 @pytest.fixture(scope="module")
 def tiny_world(tmp_path_factory):
-    pytest.importorskip("surveys.sim.simulate")
+    pytest.importorskip("scenesig.surveys.sim.simulate")
     from build_world import tiny_map, tiny_runs
 
     base = tmp_path_factory.getbasetemp()
@@ -408,9 +408,9 @@ def tiny_world(tmp_path_factory):
 @pytest.mark.heavy
 def test_build_map_skip_corrupt_leaves_the_frames_out(tiny_world, tmp_path):
     from build_world import CONFIG
-    from mapping.build import build_map
-    from mapping.store import MapStore
-    from surveys.run import read_run
+    from scenesig.mapping.build import build_map
+    from scenesig.mapping.store import MapStore
+    from scenesig.surveys.run import read_run
 
     runs, _ = tiny_world
     for r in runs:

@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import pytest
 
-pytest.importorskip("surveys.sim.simulate")
+pytest.importorskip("scenesig.surveys.sim.simulate")
 
 from scenesig.cli import main as cli  # noqa: E402
 
@@ -23,8 +23,8 @@ CONFIG = {"mining": {"shapes": SHAPES}, "max_window_frames": 9,
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
     """The tiny world at 5 Hz: three training runs of different appearance and a held-out sunny run."""
-    from surveys.run import read_run
-    from surveys.sim.simulate import simulate
+    from scenesig.surveys.run import read_run
+    from scenesig.surveys.sim.simulate import simulate
 
     root = tmp_path_factory.mktemp("fewrun")
     simulate(root / "runs", preset="tiny", seed=1, runs=TRAINING + ["sunny"], camera_hz=5.0, jobs=1,
@@ -34,9 +34,9 @@ def world(tmp_path_factory):
 
 
 def test_three_run_map_has_signatures_everywhere_and_localises_a_day_run(world, tmp_path, caplog):
-    from localiser.replay import localise
-    from mapping.build import build_map
-    from mapping.coverage import weak_places
+    from scenesig.localiser.replay import localise
+    from scenesig.mapping.build import build_map
+    from scenesig.mapping.coverage import weak_places
 
     root, train, live = world
     summary = build_map(train, train[0], tmp_path / "map", jobs=1, progress=False, config=CONFIG)
@@ -60,7 +60,7 @@ def test_three_run_map_has_signatures_everywhere_and_localises_a_day_run(world, 
 
 def test_one_run_map_builds_from_frames_and_augmented_copies(world, tmp_path, caplog):
     from build_world import SHAPES as SMALL_SHAPES
-    from mapping.build import build_map
+    from scenesig.mapping.build import build_map
 
     root, train, _ = world
     cfg = {**CONFIG, "places": {"spacing_m": 20.0}, "mining": {"shapes": SMALL_SHAPES}}
@@ -95,8 +95,8 @@ def test_build_where_no_place_keeps_a_signature_exits_2_and_writes_no_map(world,
 
 def _view(positions, frame):
     """A TrainingView along x (no run: only its window geometry is used)."""
-    from mapping.places import TrainingView
-    from surveys.geometry import make_pose
+    from scenesig.mapping.places import TrainingView
+    from scenesig.surveys.geometry import make_pose
 
     window = np.arange(len(positions))
     T = np.stack([make_pose(np.eye(3), [x - positions[frame], 0.0, 0.0]) for x in positions])
@@ -104,7 +104,7 @@ def _view(positions, frame):
 
 
 def test_neighbour_frames_alternate_ahead_and_behind_within_the_segment():
-    from mapping.places import neighbour_frames
+    from scenesig.mapping.places import neighbour_frames
 
     v = _view(np.arange(0.0, 10.01, 0.5), frame=10)          # 0.5 m apart, training frame at 5 m
     assert neighbour_frames(v, 1, 1.0, 5.0).tolist() == [10]
@@ -121,7 +121,7 @@ def test_neighbour_frames_alternate_ahead_and_behind_within_the_segment():
 
 def test_six_runs_mine_exactly_the_papers_training_images():
     """Six runs or more: one frame per run, no augmentation -- such maps are built as before."""
-    from mapping.build import frames_per_run, mining_images, _merge
+    from scenesig.mapping.build import frames_per_run, mining_images, _merge
 
     rng = np.random.default_rng(0)
     images = [rng.integers(0, 255, (24, 32), dtype=np.uint8) for _ in range(6)]

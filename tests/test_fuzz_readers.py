@@ -21,7 +21,7 @@ from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from conftest import make_run  # noqa: E402
-from surveys.errors import DataError  # noqa: E402
+from scenesig.surveys.errors import DataError  # noqa: E402
 
 HANG_SECONDS = 10
 #: Byte strings a mutation splices in: separators, number-breakers, quotes, NUL, huge exponents.
@@ -55,7 +55,7 @@ def mutated(draw, valid: bytes):
 
 # ------------------------------------------------------------------------------------------------ templates
 def _survey_files(tmp: Path) -> dict:
-    from surveys.run import write_run
+    from scenesig.surveys.run import write_run
 
     run, images = make_run(n_frames=6)
     write_run(run, tmp / "run", images=images)
@@ -64,7 +64,7 @@ def _survey_files(tmp: Path) -> dict:
 
 
 def _map_files(tmp: Path) -> dict:
-    from mapping.store import MapWriter
+    from scenesig.mapping.store import MapWriter
     from test_store import CAM, PARAMS, T_VC, make_place, places_meta
 
     w = MapWriter(tmp / "map", CAM, T_VC, PARAMS)
@@ -110,14 +110,14 @@ def _valid_poses(P):
 
 
 def _read_meta(path, _):
-    from surveys.run import read_meta
+    from scenesig.surveys.run import read_meta
 
     m = read_meta(path)
     assert m["camera"].width > 0 and m["camera"].fx > 0 and m["T_vehicle_camera"].shape == (4, 4)
 
 
 def _read_frames(path, _):
-    from surveys.run import read_frames
+    from scenesig.surveys.run import read_frames
 
     t, files, lines = read_frames(path)
     _finite_increasing(t)
@@ -125,7 +125,7 @@ def _read_frames(path, _):
 
 
 def _read_odometry(path, _):
-    from surveys.run import read_odometry
+    from scenesig.surveys.run import read_odometry
 
     t, P = read_odometry(path)
     _finite_increasing(t)
@@ -133,7 +133,7 @@ def _read_odometry(path, _):
 
 
 def _read_gps(path, _):
-    from surveys.run import read_gps
+    from scenesig.surveys.run import read_gps
 
     g = read_gps(path)
     assert g.shape[1] == 4 and np.all(np.isfinite(g))
@@ -141,7 +141,7 @@ def _read_gps(path, _):
 
 
 def _read_tum(path, _):
-    from surveys.tum import read_tum
+    from scenesig.surveys.tum import read_tum
 
     t, P = read_tum(path)
     _finite_increasing(t)
@@ -150,7 +150,7 @@ def _read_tum(path, _):
 
 def _grief(layout):
     def read(path, dirs):
-        from surveys.grief import load
+        from scenesig.surveys.grief import load
 
         ds = load(dirs[layout])
         for pair in ds.pairs():
@@ -159,7 +159,7 @@ def _grief(layout):
 
 
 def _manifest(path, dirs):
-    from mapping.store import MapStore
+    from scenesig.mapping.store import MapStore
 
     store = MapStore.open(dirs["map"])
     assert all(np.isfinite(m.T_world_place).all() for m in store.places.values())
@@ -168,14 +168,14 @@ def _manifest(path, dirs):
 
 
 def _place(path, _):
-    from mapping.store import decode_place
+    from scenesig.mapping.store import decode_place
 
     data = decode_place(path.read_bytes(), path, 1)
     assert data.landmarks.shape[1] == 3
 
 
 def _image(path, _):
-    from surveys.images import read_image
+    from scenesig.surveys.images import read_image
 
     img = read_image(path, gray=True)
     assert img.dtype == np.uint8 and img.ndim == 2

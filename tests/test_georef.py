@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from mapping.georef import (combine_estimates, georeference_places, smooth_corrections, solve_relative_pose)
-from mapping.places import Place
-from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, rot_z, yaw_of
+from scenesig.mapping.georef import (combine_estimates, georeference_places, smooth_corrections, solve_relative_pose)
+from scenesig.mapping.places import Place
+from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, rot_z, yaw_of
 
 CAM = Camera(500.0, 500.0, 319.5, 239.5, 640, 480)
 T_VC = make_pose(CAMERA_FROM_VEHICLE_AXES, [1.2, 0.0, 1.5])

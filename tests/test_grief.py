@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from surveys.errors import DataError
-from surveys.grief import GriefPair, detect_layout, load
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.grief import GriefPair, detect_layout, load
 
 
 # ---------------------------------------------------------------------------------- real data

@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from benchmarks import heading as hb
-from surveys.grief import GriefPair, load
+from scenesig.benchmarks import heading as hb
+from scenesig.surveys.grief import GriefPair, load
 
 REQUIRED_METHOD_KEYS = {"error_rate", "errors", "pairs", "seconds"}
 

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, SHARED_DATA, make_run
-from surveys.errors import DataError
-from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, invert, make_pose, rot_x, rot_y, rot_z, yaw_of
-from surveys.importers import euroc, kapture, kitti_raw, tum_rgbd
-from surveys.importers.common import planar_dead_reckoning
-from surveys.importers.photometric import darken
-from surveys.run import read_run, write_run
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, invert, make_pose, rot_x, rot_y, rot_z, yaw_of
+from scenesig.surveys.importers import euroc, kapture, kitti_raw, tum_rgbd
+from scenesig.surveys.importers.common import planar_dead_reckoning
+from scenesig.surveys.importers.photometric import darken
+from scenesig.surveys.run import read_run, write_run
 
 KITTI = SHARED_DATA / "kitti" / "2011_09_26_snippet"
 
@@ -196,7 +196,7 @@ def test_kitti_groundtruth_matches_oxts_within_1cm(kitti_drive, kitti_runs):
     assert np.abs(run.groundtruth_poses[:, :3, 3] - ref[:, :3, 3]).max() < 0.01
     assert np.abs(run.groundtruth_poses[:, :3, :3] - ref[:, :3, :3]).max() < 1e-9
     # through the TUM file on disk (what evo reads) as well
-    from surveys.tum import read_tum
+    from scenesig.surveys.tum import read_tum
     _, P = read_tum(run.root / "groundtruth.tum")
     assert np.abs(P[:, :3, 3] - ref[:, :3, 3]).max() < 0.01
     # the data README: about 33.5 m with a 21 deg turn
@@ -342,7 +342,7 @@ def _foreign_kapture(root: Path, n=4) -> np.ndarray:
     lines, recs = [], []
     for i in range(n):
         tx, ty, tz = invert(T_wc[i])[:3, 3]
-        from surveys.geometry import rot_to_quat
+        from scenesig.surveys.geometry import rot_to_quat
         qx, qy, qz, qw = rot_to_quat(invert(T_wc[i])[:3, :3])
         lines.append(f"{i}, c0, {qw}, {qx}, {qy}, {qz}, {tx}, {ty}, {tz}\n")
         recs.append(f"{i}, c0, seq/{i:03d}.jpg\n")
@@ -401,7 +401,7 @@ def test_tum_rgbd_import(tmp_path):
     (seq / "rgb.txt").write_text("\n".join(rgb) + "\n")
     gt_t = np.arange(times[1] - 0.001, times[-1] + 0.05, 0.01)  # the first image is before the ground truth
     T_wc = np.stack([make_pose(rot_z(0.2 * k) @ CAMERA_FROM_VEHICLE_AXES, [k, 0, 0.3]) for k in range(len(gt_t))])
-    from surveys.tum import format_tum
+    from scenesig.surveys.tum import format_tum
     (seq / "groundtruth.txt").write_text("# ground truth trajectory\n# timestamp tx ty tz qx qy qz qw\n"
                                          + format_tum(gt_t, T_wc))
     run = read_run(tum_rgbd.import_tum_rgbd(seq, tmp_path / "run", {"odometry_noise": 0.0}, progress=False))

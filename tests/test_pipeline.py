@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from localiser.detector import Detector, measurement_covariance, projection_jacobians, search_windows
-from localiser.pipeline import (Localiser, Measurement, WeakLocaliser, default_config, make_method,
+from scenesig.localiser.detector import Detector, measurement_covariance, projection_jacobians, search_windows
+from scenesig.localiser.pipeline import (Localiser, Measurement, WeakLocaliser, default_config, make_method,
                                 odometry_covariance)
-from localiser.replay import replay
-from localiser.solver import LocalisationConstraint, pose_exp
-from mapping.store import MapStore, MapWriter, PlaceData
-from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, interpolate_poses, invert, make_pose, rot_z, yaw_of
+from scenesig.localiser.replay import replay
+from scenesig.localiser.solver import LocalisationConstraint, pose_exp
+from scenesig.mapping.store import MapStore, MapWriter, PlaceData
+from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, interpolate_poses, invert, make_pose, rot_z, yaw_of
 
 from pipeline_world import SPEED, NothingMethod, TruthMethod, make_live_run, make_map
 
@@ -84,8 +84,8 @@ def test_measurement_covariance_is_eq5():
 
 def _template_map(tmp_path, image, cam, T_vc, depth=25.0, n=12, seed=0):
     """A map whose place 0 holds classifiers that are HOG templates of patches of ``image``."""
-    from signatures.bank import Bank, Classifier
-    from signatures.hog import build_pyramid
+    from scenesig.signatures.bank import Bank, Classifier
+    from scenesig.signatures.hog import build_pyramid
 
     pyr = build_pyramid(image, levels=[0, 1, 2])
     feat = pyr.levels[1]
@@ -123,7 +123,7 @@ def _template_map(tmp_path, image, cam, T_vc, depth=25.0, n=12, seed=0):
 
 
 def test_detector_finds_signatures_around_predictions_and_in_the_whole_image(tmp_path):
-    from localiser.synthetic import synthetic_place
+    from scenesig.localiser.synthetic import synthetic_place
 
     cam = Camera(250.0, 250.0, 159.5, 119.5, 320, 240)
     T_vc = make_pose(CAMERA_FROM_VEHICLE_AXES, [1.2, 0.0, 1.5])
@@ -161,7 +161,7 @@ def test_detector_finds_signatures_around_predictions_and_in_the_whole_image(tmp
 
 
 def test_detector_rejects_images_of_the_wrong_size(tmp_path):
-    from localiser.synthetic import synthetic_place
+    from scenesig.localiser.synthetic import synthetic_place
 
     cam = Camera(250.0, 250.0, 159.5, 119.5, 320, 240)
     T_vc = make_pose(CAMERA_FROM_VEHICLE_AXES, [1.2, 0.0, 1.5])

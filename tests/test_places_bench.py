@@ -3,7 +3,7 @@ import json
 
 import numpy as np
 
-from benchmarks.places import protocols, recall_at, run_benchmark
+from scenesig.benchmarks.places import protocols, recall_at, run_benchmark
 
 
 def test_recall_at_counts_within_tolerance():
@@ -19,7 +19,7 @@ def test_recall_at_counts_within_tolerance():
 
 
 def test_protocols_season_and_stromovka(grief_root):
-    from surveys.grief import load
+    from scenesig.surveys.grief import load
 
     season = protocols(load(grief_root / "season"))
     assert len(season) == 1 and len(season[0].queries) == 101 and season[0].tolerance == 1

@@ -3,7 +3,7 @@ import cv2
 import numpy as np
 import pytest
 
-from signatures import pointfeatures as pf
+from scenesig.signatures import pointfeatures as pf
 
 
 def texture(h=160, w=480, seed=0):
@@ -115,7 +115,7 @@ def _planted(seed=0, n_true=300, n_false=300, size=(640, 480)):
 
 
 def test_gms_keeps_a_planted_consistent_set_and_drops_random_matches():
-    from signatures.pointfeatures import gms_filter
+    from scenesig.signatures.pointfeatures import gms_filter
 
     xa, xb, truth = _planted()
     keep = gms_filter(xa, xb, (640, 480), (640, 480))
@@ -128,7 +128,7 @@ def test_gms_keeps_a_planted_consistent_set_and_drops_random_matches():
 @pytest.mark.parametrize("filter", ["gms", "dapc"])
 def test_match_filters_keep_planted_matches_and_drop_random_ones(filter):
     """Through :func:`match`: the planted features' descriptors are near copies, the others random."""
-    from signatures.pointfeatures import PointFeatures, match
+    from scenesig.signatures.pointfeatures import PointFeatures, match
 
     rng = np.random.default_rng(1)
     xa, xb, truth = _planted(seed=1)

@@ -2,14 +2,14 @@
 import numpy as np
 import pytest
 
-from localiser.pipeline import MotionPrior, make_method
-from localiser.pointmethod import PointLocaliser, match_to_map
-from localiser.solver import pose_exp
-from mapping.pointmap import (build_point_features, point_covariances, select_frames, triangulate_keyframe,
+from scenesig.localiser.pipeline import MotionPrior, make_method
+from scenesig.localiser.pointmethod import PointLocaliser, match_to_map
+from scenesig.localiser.solver import pose_exp
+from scenesig.mapping.pointmap import (build_point_features, point_covariances, select_frames, triangulate_keyframe,
                               triangulate_tracks)
-from mapping.store import MapStore, MapWriter, PlaceData, decode_place, encode_place
-from signatures.pointfeatures import PointFeatures
-from surveys.geometry import invert, make_pose, rot_z
+from scenesig.mapping.store import MapStore, MapWriter, PlaceData, decode_place, encode_place
+from scenesig.signatures.pointfeatures import PointFeatures
+from scenesig.surveys.geometry import invert, make_pose, rot_z
 
 from point_world import CAMERA, T_VC, camera_pose, planes, render, vehicle_pose
 
@@ -127,8 +127,8 @@ def test_select_frames_picks_baselines():
 
 
 def test_build_point_features_from_a_survey_run(tmp_path, world):
-    from mapping.places import TrainingView
-    from surveys.run import SurveyRun, read_run, write_run
+    from scenesig.mapping.places import TrainingView
+    from scenesig.surveys.run import SurveyRun, read_run, write_run
 
     xs = np.arange(-6.0, 6.01, 0.5)
     poses = np.stack([make_pose(rot_z(0.2), [5.0, 3.0, 0.0]) @ vehicle_pose(x) for x in xs])
@@ -267,9 +267,9 @@ def test_point_method_refuses_a_map_without_points(tmp_path):
 
 
 def test_add_to_map_gives_an_existing_map_point_features(tmp_path, world):
-    from mapping.places import define_places
-    from mapping.pointmap import add_to_map
-    from surveys.run import SurveyRun, read_run, write_run
+    from scenesig.mapping.places import define_places
+    from scenesig.mapping.pointmap import add_to_map
+    from scenesig.surveys.run import SurveyRun, read_run, write_run
 
     xs = np.arange(-6.0, 16.01, 1.0)
     poses = np.stack([vehicle_pose(x) for x in xs])
@@ -311,7 +311,7 @@ def test_add_to_map_gives_an_existing_map_point_features(tmp_path, world):
 def test_all_point_map_retrieves_the_best_keyframe_and_localises(tmp_path, world, keyframe_map, kind):
     """``orb-all`` / ``sift-all``: keyframes from two runs (the second 12 m further on, in its own
     frame, moved into the place frame); a live image near the second is matched to it."""
-    from mapping.pointmap import combine_keyframe_maps
+    from scenesig.mapping.pointmap import combine_keyframe_maps
 
     T_p1 = vehicle_pose(12.0, 0.5, np.radians(3.0))       # second keyframe in the place frame
     key1 = render(camera_pose(T_p1), world)[0]

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from localiser.pipeline import MotionPrior, make_method
-from localiser.pointmethod import LiveFrame
-from localiser.solver import pose_exp
+from scenesig.localiser.pipeline import MotionPrior, make_method
+from scenesig.localiser.pointmethod import LiveFrame
+from scenesig.localiser.solver import pose_exp
 
 from point_world import CAMERA, T_VC, camera_pose, render, vehicle_pose
 from test_pointmap import keyframe_map, point_store, world  # noqa: F401  (module fixtures)
@@ -36,7 +36,7 @@ def test_prepared_frame_gives_the_same_observation_and_counts_its_time(point_sto
 def test_shared_live_features_give_the_same_observation(point_store, world):  # noqa: F811
     """Inside a feature-cache block, a second ORB localiser (as ``orb-all`` after ``orb``) takes the live
     features the first extracted: the same detections."""
-    from signatures.pointfeatures import feature_cache
+    from scenesig.signatures.pointfeatures import feature_cache
 
     store, T_wp0 = point_store
     live, _ = render(camera_pose(vehicle_pose(3.0, 0.8, np.radians(2.0))), world)
@@ -52,7 +52,7 @@ def test_shared_live_features_give_the_same_observation(point_store, world):  # 
 
 
 def test_command_line_method_options():
-    from localiser.replay import method_options
+    from scenesig.localiser.replay import method_options
 
     assert method_options("orb") == {}
     assert method_options("sift", match="gms", point_map="all", prior_gating=False) == \
@@ -65,7 +65,7 @@ def test_command_line_method_options():
 
 
 def test_window_mask_equals_the_brute_force_test():
-    from localiser.pointmethod import window_mask
+    from scenesig.localiser.pointmethod import window_mask
 
     rng = np.random.default_rng(3)
     xy = rng.uniform([0, 0], [640, 480], (700, 2)).astype(np.float32)

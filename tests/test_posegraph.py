@@ -3,9 +3,9 @@ import gtsam
 import numpy as np
 import pytest
 
-from localiser.posegraph import DeadReckoningMonitor, PoseGraph
-from localiser.solver import pose_exp, pose_log
-from surveys.geometry import invert, make_pose, rot_z
+from scenesig.localiser.posegraph import DeadReckoningMonitor, PoseGraph
+from scenesig.localiser.solver import pose_exp, pose_log
+from scenesig.surveys.geometry import invert, make_pose, rot_z
 
 DT = 0.05
 ODO_SIG = np.array([1e-3, 1e-3, 2e-3, 0.02, 0.01, 0.01])

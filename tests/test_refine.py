@@ -4,15 +4,15 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from mapping.geometry import (
+from scenesig.mapping.geometry import (
     anchor_rays, camera_depth, camera_poses, derotate_pixels, ideal_camera, ideal_pixels, ray_points,
     reproject, reproject_jacobian, window_poses_from_increments, window_poses_from_odometry,
 )
-from mapping.refine import (
+from scenesig.mapping.refine import (
     Detections, default_config, huber, lm_huber, refine_landmarks, temporal_check,
 )
-from localiser.synthetic import synthetic_window
-from surveys.geometry import Camera, CAMERA_FROM_VEHICLE_AXES, invert, make_pose, rot_x, rot_y, rot_z
+from scenesig.localiser.synthetic import synthetic_window
+from scenesig.surveys.geometry import Camera, CAMERA_FROM_VEHICLE_AXES, invert, make_pose, rot_x, rot_y, rot_z
 
 CAM = Camera(500.0, 500.0, 319.5, 239.5, 640, 480)
 T_VC = make_pose(CAMERA_FROM_VEHICLE_AXES, [1.5, 0.0, 1.5])
@@ -287,7 +287,7 @@ def test_measurement_covariance_follows_eq5():
 
 
 def test_benchmark_reports_accuracy():
-    from benchmarks.refine import benchmark
+    from scenesig.benchmarks.refine import benchmark
     rep = benchmark(n_landmarks=60, n_frames=15, n_random=6, repeats=1, seed=3)
     assert rep["random_kept"] == 0 and rep["kept_true"] >= 50
     assert rep["depth_rel_error_median"] < 0.05 and rep["seconds_median"] > 0

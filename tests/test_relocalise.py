@@ -6,11 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from localiser.replay import replay, write_outputs
-from localiser.solver import LocalisationConstraint, pose_exp
-from localiser.pipeline import Measurement, WeakLocaliser
-from signatures import globaldesc
-from surveys.geometry import interpolate_poses
+from scenesig.localiser.replay import replay, write_outputs
+from scenesig.localiser.solver import LocalisationConstraint, pose_exp
+from scenesig.localiser.pipeline import Measurement, WeakLocaliser
+from scenesig.signatures import globaldesc
+from scenesig.surveys.geometry import interpolate_poses
 
 from pipeline_world import SPEED, frame_index, make_live_run, make_map
 
@@ -133,8 +133,8 @@ def test_withheld_detections_lost_then_recovered(road, tmp_path):
 
 
 def test_lost_search_starts_near_the_dead_reckoned_estimate(road):
-    from localiser.pipeline import Localiser
-    from localiser.relocalise import Relocaliser
+    from scenesig.localiser.pipeline import Localiser
+    from scenesig.localiser.relocalise import Relocaliser
 
     root, run, store, start = road
     loc = Localiser(store, None)

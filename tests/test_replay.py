@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from scenesig.cli import main as cli
-from localiser.replay import FRAMES_COLUMNS, TIMING_KEYS, localise, replay, write_outputs
-from surveys.errors import DataError
+from scenesig.localiser.replay import FRAMES_COLUMNS, TIMING_KEYS, localise, replay, write_outputs
+from scenesig.surveys.errors import DataError
 
 from pipeline_world import TruthMethod, make_live_run, make_map
 
@@ -104,7 +104,7 @@ def test_prepare_runs_ahead_on_a_worker_and_changes_nothing(world, tmp_path):
 def test_errors_relative_to_a_misplaced_map(world, tmp_path):
     # The map is 3 m off (its reference INS); a localiser that is exact relative to the map is 3 m off
     # the truth -- and 0 m off in the map-relative metrics, which say how far off the map is.
-    from surveys.geometry import make_pose, rot_z
+    from scenesig.surveys.geometry import make_pose, rot_z
 
     root, run, _ = world
     T_off = make_pose(rot_z(np.radians(0.5)), [1.0, -3.0, 0.2])
@@ -208,10 +208,10 @@ TRAINING = ["sunny", "overcast", "night", "snow"]
 
 def _tiny_world(root: Path, camera_hz: float, mining: dict | None):
     """Simulate the tiny world (4 training runs + a held-out sunny run) and build its map."""
-    pytest.importorskip("surveys.sim.simulate")
-    from mapping.build import build_map
-    from surveys.run import read_run
-    from surveys.sim.simulate import simulate
+    pytest.importorskip("scenesig.surveys.sim.simulate")
+    from scenesig.mapping.build import build_map
+    from scenesig.surveys.run import read_run
+    from scenesig.surveys.sim.simulate import simulate
 
     simulate(root / "runs", preset="tiny", seed=1, runs=TRAINING + ["sunny"], camera_hz=camera_hz, jobs=2,
              show_progress=False)
@@ -295,7 +295,7 @@ def test_demo_job_shares_features_and_places_with_the_same_outputs(tiny_fast, tm
 def test_tiny_world_kidnapped_start_without_ins(tiny_fast, tmp_path):
     """A run starting mid-route (another ``simulate`` call, same seed), its INS and GPS files removed:
     localised from the map alone, correctly, with no oracle read."""
-    from surveys.sim.simulate import simulate
+    from scenesig.surveys.sim.simulate import simulate
 
     map_root, live = tiny_fast
     simulate(tmp_path / "mid", preset="tiny", seed=1, runs=["night"], camera_hz=5.0, start_m=20.0,

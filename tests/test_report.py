@@ -12,7 +12,7 @@ from scenesig.experiments import MatchingResult
 from scenesig.plots import write_matching
 from scenesig.cli import main
 from scenesig.report import build_report
-from surveys.errors import DataError
+from scenesig.surveys.errors import DataError
 
 from pipeline_world import NothingMethod, TruthMethod, make_live_run, make_map
 
@@ -39,7 +39,7 @@ def _chromium():
 @pytest.fixture(scope="module")
 def demo_folder(tmp_path_factory):
     """A small demo-like folder: a map, a run, localise outputs of three methods, a matching experiment."""
-    from localiser.replay import replay, write_outputs
+    from scenesig.localiser.replay import replay, write_outputs
 
     base = tmp_path_factory.mktemp("demo")
     store = make_map(base / "map")

@@ -13,13 +13,13 @@ from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from build_world import tiny_runs
-from surveys.errors import DataError
-from surveys.geometry import CAMERA_FROM_VEHICLE_AXES, invert, make_pose, pose_to_xyzquat, rot_z, xyzquat_to_pose
-from surveys.importers import rosbag as rb
-from surveys.run import read_run, write_run
-from surveys.tum import write_tum
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, invert, make_pose, pose_to_xyzquat, rot_z, xyzquat_to_pose
+from scenesig.surveys.importers import rosbag as rb
+from scenesig.surveys.run import read_run, write_run
+from scenesig.surveys.tum import write_tum
 
-pytest.importorskip("surveys.sim.simulate")
+pytest.importorskip("scenesig.surveys.sim.simulate")
 
 
 @pytest.fixture(scope="module")
@@ -500,7 +500,7 @@ def test_cli_list_and_import(source, tmp_path, capsys):
 def test_record_times_far_from_header_stamps_are_stated(tmp_path, monkeypatch, caplog):
     monkeypatch.setitem(globals(), "LAG", 200_000_000)  # a recorder 0.2 s behind the sensors
     bag, _ = hand_bag(tmp_path / "b", n=5)
-    with caplog.at_level("WARNING", logger="surveys.importers.rosbag"):
+    with caplog.at_level("WARNING", logger="scenesig.surveys.importers.rosbag"):
         run, _ = rb.load_rosbag(bag, HAND)
     assert run.frame_times[0] == 1700000000.0  # the header stamp, not the record time
     assert run.metadata["record_minus_header_s"]["odometry"]["median"] == pytest.approx(0.2)

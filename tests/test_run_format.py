@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from surveys.errors import DataError
-from surveys.run import read_run, write_run
-from surveys.tum import read_tum, write_tum
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.run import read_run, write_run
+from scenesig.surveys.tum import read_tum, write_tum
 
 from conftest import make_run
 

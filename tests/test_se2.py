@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from localiser.se2 import PlaneSnapper, local_plane, snap_to_keyframes, snap_to_plane
-from surveys.geometry import exp_so3, make_pose, rot_x, rot_y, rot_z, yaw_of
+from scenesig.localiser.se2 import PlaneSnapper, local_plane, snap_to_keyframes, snap_to_plane
+from scenesig.surveys.geometry import exp_so3, make_pose, rot_x, rot_y, rot_z, yaw_of
 
 
 def tilted_road(n=6, spacing=10.0, grade=0.08, bank=0.05, yaw=0.3):

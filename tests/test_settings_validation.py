@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from surveys.settings import merge_settings
-from surveys.validation import check_array, check_covariance, check_image, check_pose, check_poses
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.validation import check_array, check_covariance, check_image, check_pose, check_poses
 
 DEFAULTS = {"a": 1, "sub": {"x": 1.0, "y": 2.0}, "open": {"k": 1}}
 

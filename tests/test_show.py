@@ -8,7 +8,7 @@ import pytest
 
 from build_world import tiny_map
 
-pytest.importorskip("surveys.sim.simulate")
+pytest.importorskip("scenesig.surveys.sim.simulate")
 
 
 @pytest.fixture(scope="module")
@@ -52,9 +52,9 @@ def test_map_show_one_place(map_root, tmp_path, capsys):
 
 
 def test_signature_boxes_and_depths_match_the_place(map_root):
-    from mapping.show import _boxes_and_depths
-    from mapping.store import MapStore
-    from surveys.geometry import invert
+    from scenesig.mapping.show import _boxes_and_depths
+    from scenesig.mapping.store import MapStore
+    from scenesig.surveys.geometry import invert
 
     store = MapStore.open(map_root)
     manifest = json.loads((map_root / "manifest.json").read_text())

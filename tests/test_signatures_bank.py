@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from signatures import hog
-from signatures.bank import Bank, Classifier, score_maps_bruteforce, _score_all
+from scenesig.signatures import hog
+from scenesig.signatures.bank import Bank, Classifier, score_maps_bruteforce, _score_all
 
 
 def _bank(rng, specs):
@@ -181,7 +181,7 @@ def test_windowed_pyramid_computes_less_and_detects_the_same():
 
 def test_blas_limit_nests_and_restores():
     threadpoolctl = pytest.importorskip("threadpoolctl")
-    from signatures.bank import limit_blas_threads
+    from scenesig.signatures.bank import limit_blas_threads
 
     def counts():
         return [d["num_threads"] for d in threadpoolctl.threadpool_info() if d["user_api"] == "blas"]

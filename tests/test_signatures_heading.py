@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from signatures import heading
+from scenesig.signatures import heading
 
 
 def test_vote_finds_the_dense_mode_not_the_mean():
@@ -37,7 +37,7 @@ def _stromovka(grief_root):
     path = grief_root / "stromovka"
     if not path.is_dir():
         pytest.skip(f"{path} not found (needs ../shared/data/grief/stromovka)")
-    from surveys.grief import load
+    from scenesig.surveys.grief import load
     return load(path)
 
 
@@ -69,7 +69,7 @@ def test_stromovka_error_rate_target(grief_root):
 def test_one_configuration_with_a_rule_on_training_data_only():
     """No per-data-set settings: a bank's voting settings depend only on how many real training
     appearances it was mined from (augmented copies do not count)."""
-    from signatures import heading
+    from scenesig.signatures import heading
 
     assert not hasattr(heading, "sequence_overrides")
     cfg = dict(heading.default_config)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from signatures import hog
+from scenesig.signatures import hog
 
 
 def _edge_image(vertical=True, h=64, w=96):

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from signatures import mining
-from signatures.shapes import ShapeSet
-from localiser.synthetic import synthetic_place
+from scenesig.signatures import mining
+from scenesig.signatures.shapes import ShapeSet
+from scenesig.localiser.synthetic import synthetic_place
 
 
 def _shapes(boxes):

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from signatures.shapes import candidate_shapes, default_config
+from scenesig.signatures.shapes import candidate_shapes, default_config
 
 
 @pytest.mark.parametrize("size", [(640, 480), (1024, 384), (512, 192)])

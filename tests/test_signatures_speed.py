@@ -4,11 +4,11 @@ import json
 import numpy as np
 import pytest
 
-from benchmarks.speed import _bank_of, run_from_args
+from scenesig.benchmarks.speed import _bank_of, run_from_args
 
 
 def test_bank_of_draws_with_repetition_only_when_needed():
-    from signatures.bank import Bank, Classifier
+    from scenesig.signatures.bank import Bank, Classifier
     cs = [Classifier(np.zeros((2, 2, 31), np.float32), float(i), 1, (0, 0, 16, 16), (8, 8), 1.0)
           for i in range(5)]
     bank = Bank(cs)

@@ -4,7 +4,7 @@ import json
 
 
 def test_bench_prints_json_on_stdout_and_writes_it(tmp_path, capsys):
-    from benchmarks.render import main
+    from scenesig.benchmarks.render import main
 
     out = tmp_path / "render.json"
     assert main(["--preset", "tiny", "--frames", "3", "--conditions", "sunny,night", "--json", str(out)]) == 0

@@ -10,12 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from surveys.geometry import Camera, invert, make_pose, rot_y, transform
-from surveys.run import read_run
-from surveys.sim.render import Renderer, build_pyramid, quad_texture_maps
-from surveys.sim.scene import RunScene, render_view, static_depth
-from surveys.sim.simulate import simulate
-from surveys.sim.world import World
+from scenesig.surveys.geometry import Camera, invert, make_pose, rot_y, transform
+from scenesig.surveys.run import read_run
+from scenesig.surveys.sim.render import Renderer, build_pyramid, quad_texture_maps
+from scenesig.surveys.sim.scene import RunScene, render_view, static_depth
+from scenesig.surveys.sim.simulate import simulate
+from scenesig.surveys.sim.world import World
 
 
 @pytest.fixture(scope="module")
@@ -162,7 +162,7 @@ def test_world_depth_is_the_static_structure(tiny_run):
 
 
 def test_truth_depth_image_of_a_written_run(tiny_run):
-    from surveys.sim.truth import depth_image
+    from scenesig.surveys.sim.truth import depth_image
 
     out, run, world = tiny_run
     k = len(run) // 3

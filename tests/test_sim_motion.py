@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from surveys.geometry import invert
-from surveys.sim.motion import (LANE_CENTRE, InsModel, drift_per_100m, ins, odometry, plan_drive)
-from surveys.sim.noise import rng_for
-from surveys.sim.world import World
+from scenesig.surveys.geometry import invert
+from scenesig.surveys.sim.motion import (LANE_CENTRE, InsModel, drift_per_100m, ins, odometry, plan_drive)
+from scenesig.surveys.sim.noise import rng_for
+from scenesig.surveys.sim.world import World
 
 N_RUNS = 30
 

@@ -6,12 +6,12 @@ from argparse import Namespace
 import numpy as np
 import pytest
 
-from surveys.errors import DataError
-from surveys.run import read_run
-from surveys.sim import place_views
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.run import read_run
+from scenesig.surveys.sim import place_views
 from scenesig.commands.simulate import run as run_from_args
-from surveys.sim.simulate import simulate
-from surveys.sim.world import World
+from scenesig.surveys.sim.simulate import simulate
+from scenesig.surveys.sim.world import World
 
 RUNS = ["sunny", "night"]
 

@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from localiser.synthetic import synthetic_place
-from signatures import experience, hog, mining, whiten
-from signatures.augment import CONDITIONS, augment, relight, synthesise
+from scenesig.localiser.synthetic import synthetic_place
+from scenesig.signatures import experience, hog, mining, whiten
+from scenesig.signatures.augment import CONDITIONS, augment, relight, synthesise
 
 
 # ---------------------------------------------------------------------------------- whitening
@@ -62,7 +62,7 @@ def test_background_file_is_packaged_and_bad_files_are_named(tmp_path):
     assert int(bg["cells"]) > 100_000
     bad = tmp_path / "bg.npz"
     bad.write_bytes(b"not a zip")
-    from surveys.errors import DataError
+    from scenesig.surveys.errors import DataError
     with pytest.raises(DataError, match="bg.npz"):
         whiten.load_background(str(bad))
 
@@ -151,7 +151,7 @@ def test_multi_scale_and_whitened_mining_give_valid_banks():
 
 
 def test_heading_single_protocol_on_a_sessions_layout(tmp_path):
-    from benchmarks import heading as hb
+    from scenesig.benchmarks import heading as hb
     from tests.test_heading_bench import make_shifted_dataset
 
     root = make_shifted_dataset(tmp_path / "synth", n_places=2)
@@ -172,7 +172,7 @@ def test_heading_single_protocol_on_a_sessions_layout(tmp_path):
 
 
 def test_webcam_speed_reports_the_time_target_keys(tmp_path):
-    from benchmarks import webcam_speed
+    from scenesig.benchmarks import webcam_speed
     from tests.test_webcam_bench import _write_scene
 
     names = [f"2020{(i // 28) + 1:02d}{(i % 28) + 1:02d}_{(8 + i) % 24:02d}0000.jpg" for i in range(42)]
@@ -192,7 +192,7 @@ def test_webcam_speed_reports_the_time_target_keys(tmp_path):
 
 @pytest.mark.heavy        # renders ten simulator views (~10 s on a quiet machine)
 def test_simulated_webcam_folder_follows_the_webcam_protocol(tmp_path):
-    from benchmarks import simcam, webcam
+    from scenesig.benchmarks import simcam, webcam
 
     doc = simcam.render_folder(tmp_path / "cams", places=1, size=(128, 96))
     assert doc["places"] == 1

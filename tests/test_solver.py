@@ -4,10 +4,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from localiser import _solver_kernel
-from localiser.solver import pose_exp, pose_log, solve, solve_pnp_prior
-from localiser.synthetic import synthetic_problem
-from surveys.geometry import invert, make_pose, rot_z
+from scenesig.localiser import _solver_kernel
+from scenesig.localiser.solver import pose_exp, pose_log, solve, solve_pnp_prior
+from scenesig.localiser.synthetic import synthetic_problem
+from scenesig.surveys.geometry import invert, make_pose, rot_z
 
 
 def inputs(p):
@@ -59,7 +59,7 @@ def test_landmark_covariance_is_propagated_into_image():
 
 
 def test_whitening_matches_finite_difference_projection():
-    from localiser.solver import _merge, _Problem, default_config
+    from scenesig.localiser.solver import _merge, _Problem, default_config
 
     p = synthetic_problem(5, outlier_fraction=0.0, seed=4)
     cov_l = np.stack([np.diag([0.5, 0.1, 2.0])] * 5)
@@ -216,8 +216,8 @@ def test_bad_input_is_named():
 
 @pytest.mark.parametrize("estimator", ["poselib", "pycolmap"])
 def test_robust_absolute_pose_recovers_a_known_pose_with_70_percent_outliers(estimator):
-    from localiser.absolute_pose import estimate
-    from surveys.geometry import invert
+    from scenesig.localiser.absolute_pose import estimate
+    from scenesig.surveys.geometry import invert
 
     p = synthetic_problem(200, outlier_fraction=0.7, seed=21, landmark_sigma=0.05)
     r = estimate(p["uv"], p["landmarks"], p["camera"], {"estimator": estimator})

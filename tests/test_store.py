@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapping.store import (
+from scenesig.mapping.store import (
     FORMAT_VERSION, MapStore, MapWriter, PlaceData, PlaceMeta, decode_keyframe, encode_keyframe,
 )
 from scenesig.cli import main
-from surveys.errors import DataError
-from surveys.geometry import Camera, CAMERA_FROM_VEHICLE_AXES, make_pose, rot_z
+from scenesig.surveys.errors import DataError
+from scenesig.surveys.geometry import Camera, CAMERA_FROM_VEHICLE_AXES, make_pose, rot_z
 
 ROOT = Path(__file__).resolve().parents[1]
 CAM = Camera(500.0, 500.0, 319.5, 239.5, 640, 480)
@@ -174,8 +174,8 @@ def test_place_files_are_deterministic_zip(tmp_path):
 KILL_SCRIPT = textwrap.dedent("""
     import os, signal, sys
     sys.path.insert(0, {tests!r})
-    import mapping.store as S
-    import surveys.io as IO  # the atomic writer the store uses
+    import scenesig.mapping.store as S
+    import scenesig.surveys.io as IO  # the atomic writer the store uses
     from test_store import CAM, T_VC, PARAMS, make_place
     mode = {mode!r}
     def die():
@@ -386,7 +386,7 @@ def test_keyframe_helpers():
 def test_map_identity_drawn_at_build_kept_on_resume_and_derived_for_old_maps(tmp_path):
     """A map's identity is drawn when its build starts, kept by a resumed build (journal), and for a map
     written before identities existed derived from its manifest, the same for every reader."""
-    from mapping.identity import derived_map_id
+    from scenesig.mapping.identity import derived_map_id
 
     w = MapWriter(tmp_path / "m", CAM, T_VC, PARAMS)
     w.write_place(0, make_place(0))

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
     """The tiny map and a localisation of its night run against it."""
-    from localiser.replay import localise
+    from scenesig.localiser.replay import localise
 
     base = tmp_path_factory.getbasetemp()
     runs = tiny_runs(base)
@@ -47,8 +47,8 @@ def _contents(root: Path) -> dict:
 @pytest.fixture(scope="module")
 def reference_update(world, tmp_path_factory):
     """An uninterrupted update of the tiny map with the night localisation, into a new folder."""
-    from localiser.outputs import read_localisation
-    from mapping.update import update_map
+    from scenesig.localiser.outputs import read_localisation
+    from scenesig.mapping.update import update_map
 
     root, loc = world
     out = tmp_path_factory.mktemp("updated") / "map"
@@ -57,7 +57,7 @@ def reference_update(world, tmp_path_factory):
 
 
 def test_metrics_gain_detection_rates(world):
-    from localiser.outputs import read_frames_csv
+    from scenesig.localiser.outputs import read_frames_csv
 
     _, loc = world
     m = json.loads((loc / "metrics.json").read_text())
@@ -68,8 +68,8 @@ def test_metrics_gain_detection_rates(world):
 
 
 def test_update_changes_only_the_weak_places(world, reference_update):
-    from mapping.show import describe_map
-    from mapping.store import MapStore
+    from scenesig.mapping.show import describe_map
+    from scenesig.mapping.store import MapStore
 
     root, loc = world
     out, summary = reference_update
@@ -112,7 +112,7 @@ def _update_process(root: Path, loc: Path) -> subprocess.Popen:
 @pytest.fixture(scope="module")
 def killed_and_resumed(world, reference_update, tmp_path_factory):
     """An in-place update SIGKILLed after its first place file, then re-run, while a reader loads places."""
-    from mapping.store import MapStore
+    from scenesig.mapping.store import MapStore
 
     root, loc = world
     work = tmp_path_factory.mktemp("inplace") / "map"
@@ -217,7 +217,7 @@ def test_update_on_a_full_disk_keeps_the_old_map_and_reruns_to_the_same_bytes(wo
 
 def test_live_pose_covariance_grows_with_blind_distance_and_lever_arm():
     """New landmarks carry the live pose's uncertainty: more with odometry from the fix, more far away."""
-    from mapping.update import _live_pose_covariance, default_config
+    from scenesig.mapping.update import _live_pose_covariance, default_config
 
     T = np.eye(4)
     T[:2, 3] = [1.0, 2.0]
@@ -234,9 +234,9 @@ def test_live_pose_covariance_grows_with_blind_distance_and_lever_arm():
 def test_align_to_reference_recovers_a_planar_pose_error():
     """The live pose is corrected from where the new classifiers fire in the reference frames (whose
     pose in the place frame is exact); with too few firings it is left as it was."""
-    from mapping.places import TrainingView
-    from mapping.update import _planar, align_to_reference
-    from surveys.geometry import Camera, invert
+    from scenesig.mapping.places import TrainingView
+    from scenesig.mapping.update import _planar, align_to_reference
+    from scenesig.surveys.geometry import Camera, invert
 
     camera = Camera(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480)
     T_vc = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1.0]])   # x forward, camera z

@@ -5,9 +5,9 @@ import cv2
 import numpy as np
 import pytest
 
-from benchmarks import webcam
-from localiser.synthetic import synthetic_place
-from surveys.errors import DataError
+from scenesig.benchmarks import webcam
+from scenesig.localiser.synthetic import synthetic_place
+from scenesig.surveys.errors import DataError
 
 
 def test_hours_and_periods_from_file_names():

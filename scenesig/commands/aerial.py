@@ -1,7 +1,7 @@
 """``scenesig aerial ...``: UAV image to geo-referenced satellite-map matching (MRSM-CC).
 
 * ``scenesig aerial bench TILES_DIR --methods mrsmcc,sism,sift,orb,signatures --trials N --seed S
-  --json OUT [--figure DIR]`` -- the Monte-Carlo benchmark (:mod:`benchmarks.aerial`, its own
+  --json OUT [--figure DIR]`` -- the Monte-Carlo benchmark (:mod:`scenesig.benchmarks.aerial`, its own
   arguments);
 * ``scenesig aerial localise TILES_DIR IMAGES_DIR --out DIR [--prior LAT,LON]`` -- a sequence of
   sensed images -> ``track.csv``, ``track.png``, ``summary.json``;
@@ -51,12 +51,12 @@ def register(groups):
 
 
 def run_bench(args) -> int:
-    module = importlib.import_module("benchmarks.aerial")
+    module = importlib.import_module("scenesig.benchmarks.aerial")
     return int(module.main(list(args._extra)) or 0)
 
 
 def run_localise(args) -> int:
-    from aerial.localise import localise_sequence
+    from scenesig.aerial.localise import localise_sequence
 
     summary = localise_sequence(args.tiles, args.images, args.out, prior=args.prior,
                                 prior_radius_m=args.prior_radius_m)
@@ -65,8 +65,8 @@ def run_localise(args) -> int:
 
 
 def run_simulate(args) -> int:
-    from aerial.geo import load_tiles
-    from aerial.trials import write_sequence
+    from scenesig.aerial.geo import load_tiles
+    from scenesig.aerial.trials import write_sequence
 
     rows = write_sequence(load_tiles(args.tiles), args.out, args.images, args.seed, args.step_m)
     print(json.dumps({"images": len(rows), "out": str(args.out)}))

@@ -47,5 +47,5 @@ def register(groups):
 
 
 def run(args) -> int:
-    module = importlib.import_module(f"benchmarks.{args._bench}")
+    module = importlib.import_module(f"scenesig.benchmarks.{args._bench}")
     return int(module.main(list(args._extra)) or 0)

@@ -30,7 +30,7 @@ def register(groups):
 
 def print_places(summary: dict, file=sys.stderr) -> None:
     """Per place: runs, images mined (frames+augmented copies), signatures kept, rejected shapes by reason."""
-    from mapping.refine import REASONS
+    from scenesig.mapping.refine import REASONS
 
     reasons = ["no_data", "textureless", "not_converged", *REASONS]
     weak = set(summary.get("places_weak") or [])
@@ -45,8 +45,8 @@ def print_places(summary: dict, file=sys.stderr) -> None:
 
 
 def run(args) -> int:
-    from mapping.build import build_map, load_config
-    from surveys.run import read_run
+    from scenesig.mapping.build import build_map, load_config
+    from scenesig.surveys.run import read_run
 
     runs = [read_run(r) for r in args.runs]
     ref_path = Path(args.reference).resolve()

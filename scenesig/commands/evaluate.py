@@ -19,7 +19,7 @@ def register(groups):
 
 
 def run(args) -> int:
-    from localiser.outputs import evaluate_folder
+    from scenesig.localiser.outputs import evaluate_folder
 
     metrics = evaluate_folder(args.localisation, truth=args.truth, map_root=args.map, figure=not args.no_figure)
     keys = ("method", "run", "truth_source", "lateral_error_m", "heading_error_deg", "lateral_error_map_m",

@@ -24,10 +24,10 @@ def register(groups):
 
 
 def run_matching(args) -> int:
-    from mapping.store import MapStore
+    from scenesig.mapping.store import MapStore
     from scenesig.experiments import matching_experiment
     from scenesig.plots import write_matching
-    from surveys.run import read_run
+    from scenesig.surveys.run import read_run
 
     store = MapStore.open(args.map)
     runs = [read_run(r) for r in args.runs]

@@ -1,7 +1,7 @@
 """``scenesig import kitti-raw|kapture|tum-rgbd|euroc|rosbag`` and ``scenesig export kapture|rosbag``: the formats
 users hold.
 
-The parsers only; the work is in :mod:`surveys.importers` (one module per format, conf dicts).
+The parsers only; the work is in :mod:`scenesig.surveys.importers` (one module per format, conf dicts).
 Each import prints a JSON summary (run, frames, seconds, frames_per_second, gaps) on stdout.
 """
 from __future__ import annotations
@@ -152,14 +152,14 @@ def _conf(args, **extra) -> dict:
 def _refuse_existing(out, overwrite: bool) -> None:
     from pathlib import Path
 
-    from surveys.errors import DataError
+    from scenesig.surveys.errors import DataError
 
     if Path(out).exists() and not overwrite:
         raise DataError(out, "already exists; pass --overwrite to replace it")
 
 
 def _summary(fn, source, args, conf) -> int:
-    from surveys.run import read_run
+    from scenesig.surveys.run import read_run
 
     _refuse_existing(args.out, args.overwrite)
     t0 = time.perf_counter()
@@ -174,13 +174,13 @@ def _summary(fn, source, args, conf) -> int:
 
 
 def run_kitti_raw(args) -> int:
-    from surveys.importers.kitti_raw import import_kitti_raw
+    from scenesig.surveys.importers.kitti_raw import import_kitti_raw
 
     return _summary(import_kitti_raw, args.drive, args, _conf(args, camera=args.camera))
 
 
 def run_kapture(args) -> int:
-    from surveys.importers.kapture import import_kapture
+    from scenesig.surveys.importers.kapture import import_kapture
 
     return _summary(import_kapture, args.kapture, args,
                     _conf(args, camera=args.camera, timestamp_unit=args.timestamp_unit))
@@ -188,7 +188,7 @@ def run_kapture(args) -> int:
 
 def _intrinsics(text: str):
     """--intrinsics: a TUM preset name, or fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] for a 640x480 camera."""
-    from surveys.geometry import Camera
+    from scenesig.surveys.geometry import Camera
 
     if text in ("fr1", "fr2", "fr3"):
         return text
@@ -202,20 +202,20 @@ def _intrinsics(text: str):
 
 
 def run_tum_rgbd(args) -> int:
-    from surveys.importers.tum_rgbd import import_tum_rgbd
+    from scenesig.surveys.importers.tum_rgbd import import_tum_rgbd
 
     return _summary(import_tum_rgbd, args.folder, args, _conf(args, intrinsics=args.intrinsics))
 
 
 def run_euroc(args) -> int:
-    from surveys.importers.euroc import import_euroc
+    from scenesig.surveys.importers.euroc import import_euroc
 
     return _summary(import_euroc, args.folder, args, _conf(args, camera=args.camera))
 
 
 def run_export_kapture(args) -> int:
-    from surveys.importers.kapture import export_kapture
-    from surveys.run import read_run
+    from scenesig.surveys.importers.kapture import export_kapture
+    from scenesig.surveys.run import read_run
 
     _refuse_existing(args.out, args.overwrite)
     out = export_kapture(read_run(args.run), args.out, camera_id=args.camera_id, overwrite=args.overwrite)
@@ -237,7 +237,7 @@ def _numbers(counts):
 
 def _extrinsic(text: str):
     """--extrinsic x,y,z,qx,qy,qz,qw -> the 4x4 T_vehicle_camera."""
-    from surveys.geometry import xyzquat_to_pose
+    from scenesig.surveys.geometry import xyzquat_to_pose
 
     v = _numbers((7,))(text)
     if sum(q * q for q in v[3:]) < 1e-12:
@@ -246,7 +246,7 @@ def _extrinsic(text: str):
 
 
 def run_rosbag(args) -> int:
-    from surveys.importers.rosbag import import_rosbag, list_topics, suggest_arguments
+    from scenesig.surveys.importers.rosbag import import_rosbag, list_topics, suggest_arguments
 
     if args.list:
         listing = list_topics(args.bag)
@@ -286,10 +286,10 @@ def run_export_rosbag(args) -> int:
 
     import numpy as np
 
-    from surveys.errors import DataError
-    from surveys.importers.rosbag import export_trajectory_bag, read_bag_poses, read_pose_covariances, write_run_bag
-    from surveys.run import read_run
-    from surveys.tum import read_tum
+    from scenesig.surveys.errors import DataError
+    from scenesig.surveys.importers.rosbag import export_trajectory_bag, read_bag_poses, read_pose_covariances, write_run_bag
+    from scenesig.surveys.run import read_run
+    from scenesig.surveys.tum import read_tum
 
     src, out = Path(args.source), Path(args.out)
     fmt = args.format or ("ros1" if out.suffix == ".bag" else "mcap" if out.suffix == ".mcap" else "ros2")

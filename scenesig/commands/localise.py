@@ -36,7 +36,7 @@ def register(groups):
 
 
 def run(args) -> int:
-    from localiser.replay import localise, method_options
+    from scenesig.localiser.replay import localise, method_options
 
     try:
         opts = method_options(args.method, args.match, args.point_map, not args.no_prior_gating)

@@ -24,7 +24,7 @@ def register(groups):
 
 
 def run(args) -> int:
-    from mapping.show import describe_map, show_map
+    from scenesig.mapping.show import describe_map, show_map
 
     print(describe_map(args.map, args.place))
     if args.out:
@@ -34,15 +34,15 @@ def run(args) -> int:
 
 
 def run_verify(args) -> int:
-    from mapping.store import verify_summary
+    from scenesig.mapping.store import verify_summary
 
     print(json.dumps(verify_summary(args.map), indent=1))
     return 0
 
 
 def run_add_points(args) -> int:
-    from mapping.pointmap import add_to_map
-    from surveys.run import read_run
+    from scenesig.mapping.pointmap import add_to_map
+    from scenesig.surveys.run import read_run
 
     print(json.dumps(add_to_map(args.map, read_run(args.reference)), indent=1))
     return 0

@@ -20,13 +20,13 @@ def register(groups):
 
 
 def run(args) -> int:
-    from localiser.outputs import read_localisation
-    from mapping.build import load_config
-    from mapping.update import update_map
+    from scenesig.localiser.outputs import read_localisation
+    from scenesig.mapping.build import load_config
+    from scenesig.mapping.update import update_map
 
     from pathlib import Path
 
-    from surveys.errors import DataError
+    from scenesig.surveys.errors import DataError
 
     locs = [read_localisation(folder, args.runs_dir) for folder in args.localisations]
     try:

@@ -5,7 +5,7 @@ import sys
 
 from ._types import positive_int
 
-#: the presets of :data:`surveys.sim.world.PRESETS` (listed here so ``--help`` imports nothing heavy)
+#: the presets of :data:`scenesig.surveys.sim.world.PRESETS` (listed here so ``--help`` imports nothing heavy)
 PRESETS = ("tiny", "demo", "begbroke")
 
 
@@ -27,7 +27,7 @@ def register(groups):
 
 
 def run(args) -> int:
-    from surveys.sim.simulate import default_config, simulate
+    from scenesig.surveys.sim.simulate import default_config, simulate
 
     runs = args.runs
     if isinstance(runs, str):

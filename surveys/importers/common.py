@@ -156,7 +156,7 @@ def planar_dead_reckoning(times: np.ndarray, v_forward: np.ndarray, v_left: np.n
 def odometry_with_noise(poses: np.ndarray, factor: float = 0.0, seed: int = 0) -> np.ndarray:
     """Odometry poses that drift from ``poses`` as a real odometer does; ``factor`` 0 returns them as they are.
 
-    The error model is the simulator's VO model (:func:`surveys.sim.motion.perturb_odometry`; factor 1
+    The error model is the simulator's VO model (:func:`scenesig.surveys.sim.motion.perturb_odometry`; factor 1
     ≈ 0.5 % scale bias, 0.4°/100 m heading drift and 0.25°/√100 m heading random walk), so an
     imported run and a simulated one drift alike at the same factor. Seeded: the same seed gives the
     same drift.

@@ -9,7 +9,7 @@ Import (:func:`load_rosbag`, ``scenesig import rosbag``) -- what becomes what:
   ``rgba8``, ``8UC1``, ``8UC3`` and ``bayer_{rggb,bggr,gbrg,grbg}8``, demosaiced as ``cv_bridge`` does) or
   ``sensor_msgs/CompressedImage`` (JPEG or PNG). Raw images are stored as PNG -- lossless, so the pixels
   are the message's -- and compressed ones byte for byte; each is decoded strictly once
-  (:func:`surveys.images.decode_image`).
+  (:func:`scenesig.surveys.images.decode_image`).
 * times: **header stamps** (the time the sensor saw the data), not the bag's record times (the time the
   recorder received it, later by the transport delay); ``stamps="record"`` uses record times for drivers
   that leave the header empty. How far the two differ per topic goes to ``[metadata] record_minus_header_s``.
@@ -801,7 +801,7 @@ def load_rosbag(bag, config: dict | None = None, progress: bool = False):
 def import_rosbag(bag, out, config: dict | None = None, overwrite: bool = False, progress: bool = True,
                   photometric: str | dict | None = None) -> Path:
     """Import a camera and its poses from a ROS bag as the survey run ``out``, written atomically
-    (:func:`surveys.run.write_run`: a failed import leaves nothing and keeps an old run)."""
+    (:func:`scenesig.surveys.run.write_run`: a failed import leaves nothing and keeps an old run)."""
     from tqdm import tqdm
 
     from ..run import write_run

@@ -2,9 +2,9 @@
 
 Public entry points:
 
-* :func:`surveys.sim.simulate.simulate` / ``scenesig simulate`` -- write survey runs;
-* :class:`surveys.sim.world.World` -- the procedural world (``World.load(world.json)`` regenerates it;
-  :func:`surveys.sim.scene.render_view` renders one view of it, image and true depth);
+* :func:`scenesig.surveys.sim.simulate.simulate` / ``scenesig simulate`` -- write survey runs;
+* :class:`scenesig.surveys.sim.world.World` -- the procedural world (``World.load(world.json)`` regenerates it;
+  :func:`scenesig.surveys.sim.scene.render_view` renders one view of it, image and true depth);
 * :func:`place_views` -- one place under many conditions;
 * ``scenesig bench realism`` -- ORB realism table; ``scenesig bench render`` -- frames/s.
 """

@@ -95,7 +95,7 @@ class Renderer:
     """Z-buffered quad rasteriser for one camera.
 
     Buffers after :meth:`begin` / :meth:`draw`: ``fb`` (H,W,4) uint8 (BGR + the texture's 4th channel,
-    which carries the night light level, see :mod:`surveys.sim.conditions`), ``invz`` (H,W) float32
+    which carries the night light level, see :mod:`scenesig.surveys.sim.conditions`), ``invz`` (H,W) float32
     inverse depth (0 = nothing drawn / sky), ``cls`` (H,W) uint8 class ids.
     """
 

@@ -1,9 +1,9 @@
 """``scenesig simulate OUT --preset P --seed S``: write simulated survey runs of a procedural world.
 
 Stage of the pipeline: the embedded default data.  For each run (one appearance condition each) it
-plans the vehicle's drive (:mod:`surveys.sim.motion`), renders the camera frames of the world under
-the run's condition with its own distractors (:mod:`surveys.sim.scene`), simulates VO odometry and
-INS/GPS with their error models, and writes a survey-run folder with :func:`surveys.run.write_run`::
+plans the vehicle's drive (:mod:`scenesig.surveys.sim.motion`), renders the camera frames of the world under
+the run's condition with its own distractors (:mod:`scenesig.surveys.sim.scene`), simulates VO odometry and
+INS/GPS with their error models, and writes a survey-run folder with :func:`scenesig.surveys.run.write_run`::
 
     OUT/world.json               preset, seed, route and layout summary (World.load regenerates it), and
                                  ``runs``: each run's name, conditions, camera rate and start (``start_m``)
@@ -52,8 +52,8 @@ default_config = {
 
 def _world(preset: str, seed: int) -> World:
     """One World per (preset, seed) per process (workers build their own, identically), the one
-    :func:`surveys.sim.views.get_world` keeps: a pool worker that rendered runs then renders the
-    map builder's truth depths (:mod:`surveys.sim.truth`) with the textures it already made."""
+    :func:`scenesig.surveys.sim.views.get_world` keeps: a pool worker that rendered runs then renders the
+    map builder's truth depths (:mod:`scenesig.surveys.sim.truth`) with the textures it already made."""
     from .views import get_world
 
     return get_world(preset, seed)

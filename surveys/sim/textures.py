@@ -4,7 +4,7 @@ Each generator draws one object's *albedo* (what the surface looks like under ne
 from its own seeded generator, at ``ppm`` pixels per metre, for one season.  The season only changes
 what snow or leaves cover; the structure (where windows, doors, signs are) comes from the same random
 draws, so the snowy facade is the same facade.  Lighting, night and weather are applied later
-(:mod:`surveys.sim.conditions`).
+(:mod:`scenesig.surveys.sim.conditions`).
 
 Why so much detail: the world must give corner detectors (window corners, sign letters, brick
 edges) *and* mid-level patch detectors (a shopfront, a window column, a logo) something to find, and

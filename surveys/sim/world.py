@@ -1,9 +1,9 @@
 """The procedural world: a route lined with buildings, gardens, parks and street furniture.
 
 The world is a set of textured planar quads (and camera-facing billboards for trees, lamp posts and
-small furniture) laid out in route coordinates ``(s, d)`` -- see :mod:`surveys.sim.route`.  Layout is
+small furniture) laid out in route coordinates ``(s, d)`` -- see :mod:`scenesig.surveys.sim.route`.  Layout is
 drawn once from the seed; textures are generated lazily, per season, from each object's own seeded
-generator (:func:`surveys.sim.noise.rng_for`), so a world is identical whatever part of it is rendered
+generator (:func:`scenesig.surveys.sim.noise.rng_for`), so a world is identical whatever part of it is rendered
 first and in whichever process.
 
 Geometry conventions: world z is up, the road surface is ``z = 0``.  A quad's corners are
