@@ -1,4 +1,9 @@
-"""The import contract (pyproject.toml [tool.importlinter], docs/architecture.md) holds: ``lint-imports``."""
+"""The import contract (pyproject.toml [tool.importlinter], docs/architecture.md) holds: ``lint-imports``.
+
+Installed, the layers are subpackages of ``scenesig`` while their folders stay at the top of the
+repository (``[tool.setuptools.package-dir]``).  import-linter reads packages from disk, so the check lays
+this checkout out as the installed package in a temporary folder (copies of the sources) and runs there.
+"""
 import os
 import shutil
 import subprocess
@@ -11,21 +16,54 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _config() -> dict:
-    return tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
+def _pyproject() -> dict:
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())
 
 
-def test_every_top_level_package_is_in_the_contract():
-    """A new top-level package (e.g. aerial/) must be analysed, not silently left out."""
-    packages = {p.parent.name for p in ROOT.glob("*/__init__.py")}
-    missing = packages - set(_config()["root_packages"]) - {"tests"}
-    assert not missing, f"add {sorted(missing)} to [tool.importlinter] root_packages in pyproject.toml"
+def _package_dirs() -> dict[str, str]:
+    return _pyproject()["tool"]["setuptools"]["package-dir"]
 
 
-def test_lint_imports_passes():
+def _app_modules() -> set[str]:
+    """The application layer: scenesig's own modules and subpackages (everything but the mapped layers)."""
+    layers = {name.split(".", 1)[1] for name in _package_dirs() if "." in name}
+    own = {p.stem for p in (ROOT / "scenesig").glob("*.py") if p.stem not in {"__init__", "__main__"}}
+    own |= {p.parent.name for p in (ROOT / "scenesig").glob("*/__init__.py")}
+    return own - layers
+
+
+def test_every_top_level_package_is_installed_under_scenesig():
+    """A new top-level folder with an __init__.py (e.g. aerial/) must be mapped, not silently left out."""
+    mapped = set(_package_dirs().values())
+    folders = {p.parent.name for p in ROOT.glob("*/__init__.py")} - {"tests"}
+    assert folders <= mapped, f"map {sorted(folders - mapped)} in [tool.setuptools.package-dir]"
+
+
+def test_every_application_module_is_forbidden_to_the_layers():
+    contract = next(c for c in _pyproject()["tool"]["importlinter"]["contracts"]
+                    if c["name"].startswith("The layers do not import"))
+    listed = {m.removeprefix("scenesig.") for m in contract["forbidden_modules"]}
+    assert _app_modules() == listed, (
+        f"application modules {sorted(_app_modules() ^ listed)} missing from (or stale in) the contract")
+
+
+def _installed_layout(dest: Path) -> Path:
+    """Copy the sources into ``dest/scenesig/...`` as a wheel would install them."""
+    for name, folder in sorted(_package_dirs().items()):
+        target = dest.joinpath(*name.split("."))
+        shutil.copytree(ROOT / folder, target, dirs_exist_ok=True,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.npz"))
+    return dest
+
+
+def test_lint_imports_passes(tmp_path):
     exe = shutil.which("lint-imports") or str(Path(sys.executable).with_name("lint-imports"))
     if not Path(exe).exists():
         pytest.fail("lint-imports not found: install the test extras (pip install -e '.[test]')")
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}   # this checkout, not an installed copy
-    proc = subprocess.run([exe, "--no-cache"], cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
+    tree = _installed_layout(tmp_path / "tree")
+    shutil.copy(ROOT / "pyproject.toml", tree / "pyproject.toml")
+    n_sources = sum(1 for folder in set(_package_dirs().values()) for _ in (ROOT / folder).rglob("*.py"))
+    assert sum(1 for _ in (tree / "scenesig").rglob("*.py")) >= n_sources   # nothing left out of the check
+    env = {**os.environ, "PYTHONPATH": str(tree)}   # this checkout, not an installed copy
+    proc = subprocess.run([exe, "--no-cache"], cwd=tree, capture_output=True, text=True, timeout=300, env=env)
     assert proc.returncode == 0 and " 0 broken" in proc.stdout, proc.stdout[-4000:] + proc.stderr[-2000:]

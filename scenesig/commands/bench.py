@@ -35,7 +35,7 @@ BENCHMARKS = {
     "profile_mining": ("profile_mining", "Where one place's mining spends its time, per stage."),
     "places": ("places", "Place recognition on GRIEF data (recall@1, recall@5 per method)."),
     "relocalise": ("relocalise", "Global localisation cost per frame at 30, 100, 300 places."),
-    "uncertainty": ("uncertainty", "Honesty of the localiser's 95 % bounds on outputs with truth (coverage)."),
+    "uncertainty": ("uncertainty", "Honesty of the localiser's 95-percent bounds on outputs with truth (coverage)."),
     "demo_localise": ("demo_localise", "The demo's localisation stage on a finished demo: wall and CPU time."),
 }
 

@@ -1,0 +1,78 @@
+"""One namespace: only ``scenesig`` is importable at top level, from an editable install and from a wheel.
+
+The layers' folders stay at the top of the repository (``[tool.setuptools.package-dir]`` maps
+``scenesig.mapping`` to ``mapping/`` and so on); these tests check what a user gets when they install it.
+"""
+import os
+import subprocess
+import sys
+import tomllib
+import venv
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+LAYERS = ("surveys", "signatures", "mapping", "localiser", "aerial", "benchmarks")
+
+
+def _run(args, cwd, **kw):
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}   # what a user's shell has
+    return subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=600, env=env, **kw)
+
+
+def test_every_package_folder_is_listed():
+    """A new subpackage must be listed in [tool.setuptools] packages, or the wheel would leave it out."""
+    conf = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    folders = {v: k for k, v in conf["package-dir"].items()}
+    found = set()
+    for folder, name in folders.items():
+        for init in (ROOT / folder).rglob("__init__.py"):
+            rel = init.parent.relative_to(ROOT / folder).parts
+            found.add(".".join((name, *rel)))
+    assert found == set(conf["packages"]), f"packages to list or drop: {sorted(found ^ set(conf['packages']))}"
+
+
+def test_only_scenesig_is_importable_outside_the_checkout(tmp_path):
+    code = ("import importlib.util, json; "
+            f"print(json.dumps({{m: importlib.util.find_spec(m) is not None for m in {LAYERS!r}}}))")
+    proc = _run([sys.executable, "-c", code], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert '"mapping": false' in proc.stdout and "true" not in proc.stdout, proc.stdout
+    proc = _run([sys.executable, "-c", "import scenesig.mapping.store, scenesig.benchmarks.heading"], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_a_users_benchmarks_folder_does_not_shadow_ours(tmp_path):
+    (tmp_path / "benchmarks").mkdir()
+    (tmp_path / "benchmarks" / "__init__.py").write_text("raise SystemExit('the user folder was imported')\n")
+    (tmp_path / "benchmarks" / "heading.py").write_text("raise SystemExit('the user folder was imported')\n")
+    proc = _run([sys.executable, "-m", "scenesig", "bench", "heading", "--help"], cwd=tmp_path)
+    assert proc.returncode == 0 and "user folder" not in proc.stdout + proc.stderr, proc.stdout + proc.stderr
+
+
+def test_wheel_holds_only_scenesig_and_runs(tmp_path):
+    """A built wheel: nothing but ``scenesig/`` (with the package data); installed, the CLI runs."""
+    wheels = tmp_path / "wheels"
+    proc = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheels), str(ROOT)], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    (wheel,) = wheels.glob("scenesig-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    tops = {n.split("/", 1)[0] for n in names}
+    assert {t for t in tops if not t.endswith(".dist-info")} == {"scenesig"}, sorted(tops)
+    assert "scenesig/signatures/data/hog_background.npz" in names
+    assert "scenesig/benchmarks/heading.py" in names and "scenesig/mapping/build.py" in names
+    # a fresh environment that sees this machine's dependencies but not this checkout's editable install
+    env_dir = tmp_path / "venv"
+    venv.create(env_dir, system_site_packages=True, with_pip=True)
+    py = env_dir / "bin" / "python"
+    proc = _run([str(py), "-m", "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    exe = str(env_dir / "bin" / "scenesig")
+    for args in ([exe, "--help"], [exe, "bench", "--help"],
+                 [str(py), "-c", "import scenesig.mapping.build as b, scenesig.signatures.whiten as w; "
+                                 "print(b.__file__); w.load_background()"]):
+        proc = _run(args, cwd=tmp_path)
+        assert proc.returncode == 0, (args, proc.stderr[-2000:])
+    assert str(env_dir) in proc.stdout, proc.stdout   # the wheel's copy, not the checkout's
