@@ -34,6 +34,7 @@ from scenesig.aerial.geo import load_tiles
 from scenesig.aerial.landmarks import LandmarkModel
 from scenesig.aerial.mrsmcc import MRSMCC
 from scenesig.surveys.errors import DataError
+from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.io import atomic_path, atomic_write_text
 
 __all__ = ["localise_sequence", "IMAGE_SUFFIXES", "COLUMNS"]
@@ -120,7 +121,7 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
     from scenesig.aerial.mrsmcc import default_config as mrsmcc_config
 
     tiles = load_tiles(tiles_dir)
-    search_ncc = float({**mrsmcc_config, **(config or {})}["attitude_min_ncc"])
+    search_ncc = float(merge_settings(mrsmcc_config, config, "MR-SMCC")["attitude_min_ncc"])
     images_dir, out = Path(images_dir), Path(out_dir)
     if not images_dir.is_dir():
         raise DataError(images_dir, "images folder not found")

@@ -37,7 +37,7 @@ from scenesig.surveys.settings import merge_settings
 __all__ = ["PHOTOMETRIC", "GEOMETRY", "Trial", "make_trial", "make_trials", "photometric_change",
            "sensed_centre", "cut_sensed", "write_sequence"]
 
-#: Geometry of a sensed image (the seed's protocol).
+#: Geometry of a sensed image (Jin et al. 2016's protocol).
 GEOMETRY = {"size": (400, 300), "scale": (0.9, 1.1), "rotation_deg": (-10.0, 10.0)}
 
 #: Ranges of the photometric change (see module docstring).

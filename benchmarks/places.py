@@ -241,9 +241,11 @@ def _signatures(ds, pr: Protocol, cfg: dict, jobs: int = 1, progress: bool = Tru
     from scenesig.signatures import globaldesc, heading
     from scenesig.signatures import hog as hogmod
     from scenesig.signatures import mining
+    from scenesig.surveys.settings import merge_settings
 
-    hcfg = {**heading.default_config, **(heading.sequence_overrides if ds.kind == "sequence" else {}),
-            **cfg["heading"]}
+    # heading's one configuration for both layouts (a training-data rule, not per-layout overrides)
+    hcfg = merge_settings(heading.default_config, cfg["heading"] or None, "heading",
+                          open=("mining", "single_experience"))
     scale = float(hcfg["scale"])
     t_map = time.perf_counter()
     # the map: per place a bank (never trained on the query session) and its images' descriptors
@@ -257,7 +259,7 @@ def _signatures(ds, pr: Protocol, cfg: dict, jobs: int = 1, progress: bool = Tru
     D = np.stack([globaldesc.describe(_gray(ds, m)) for m in pr.map_images])
     owner = np.array([m[0] for m in pr.map_images])
     t_map = time.perf_counter() - t_map
-    hog_cfg = mining._merge(dict(hcfg["mining"]))["hog"]
+    hog_cfg = mining.resolve_config(dict(hcfg["mining"]))["hog"]
     ry = float(hcfg["live_search_y_px"]) * scale
     window = float(hcfg["vote_window_px"])
     K = int(cfg["shortlist"])

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from scenesig.surveys.geometry import Camera
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "ESTIMATORS", "AbsolutePose", "estimate"]
 
@@ -94,10 +95,7 @@ def estimate(uv, xyz, camera: Camera, config: dict | None = None) -> AbsolutePos
     -------
     AbsolutePose
     """
-    cfg = {**default_config, **(config or {})}
-    unknown = set(config or {}) - set(default_config)
-    if unknown:
-        raise ValueError(f"unknown absolute-pose option(s) {sorted(unknown)}; known: {sorted(default_config)}")
+    cfg = merge_settings(default_config, config, "absolute-pose")
     if cfg["estimator"] not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {ESTIMATORS}, got {cfg['estimator']!r}")
     t0 = time.perf_counter()
@@ -126,7 +124,9 @@ def estimate(uv, xyz, camera: Camera, config: dict | None = None) -> AbsolutePos
         T = _pose(pose.R, pose.t) if ok else None
         iters = int(info.get("iterations", 0))
     elif est == "pycolmap":
-        import pycolmap
+        from scenesig.surveys.extras import require
+
+        pycolmap = require("pycolmap", "colmap", "the pycolmap absolute-pose estimator")
 
         cam = pycolmap.Camera(model="PINHOLE", width=int(camera.width), height=int(camera.height),
                               params=[camera.fx, camera.fy, camera.cx, camera.cy])

@@ -42,15 +42,16 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from scenesig.mapping.geometry import detection_covariance_factor, reference_area
 from scenesig.mapping.refine import default_config as refine_default
 from scenesig.mapping.store import MapStore, PlaceData
 from scenesig.signatures.bank import Bank, limit_blas_threads
+from scenesig.surveys.cache import LRUCache
 from scenesig.surveys.validation import check_covariance
 from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.geometry import Camera, invert, point_pose_jacobian
@@ -192,8 +193,7 @@ def search_windows(landmarks, landmark_cov, T_place_vehicle, P_prior, camera: Ca
 
 def measurement_covariance(width, height, prob, scale, Q, area_ref: float) -> np.ndarray:
     """Eq. 5: ``R = a / (λ s) Q`` with ``a = width · height / area_ref`` (arrays (m,) -> (m, 2, 2))."""
-    a = np.asarray(width, float) * np.asarray(height, float) / float(area_ref)
-    k = a / (np.asarray(prob, float) * np.asarray(scale, float))
+    k = detection_covariance_factor(np.asarray(width, float) * np.asarray(height, float), prob, scale, area_ref)
     return k[:, None, None] * np.asarray(Q, float)[None]
 
 
@@ -225,7 +225,7 @@ class Detector:
             # The covariance the landmarks were refined with, so map and live weights agree.
             Q = (store.params.get("config", {}).get("refine", {}) or {}).get("Q", refine_default["Q"])
         self.Q = check_covariance(Q, 2, "Q")
-        self._cache: OrderedDict[int, _LoadedPlace] = OrderedDict()
+        self._cache = LRUCache(max(1, int(self.config["bank_cache"])))   # decoded banks (surveys.cache)
         self._pending: dict[int, Future] = {}
         self._lock = threading.Lock()
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="bank-prefetch")
@@ -243,23 +243,19 @@ class Detector:
         if len(ids) and (ids.min() < 0 or ids.max() >= len(bank)):
             raise ValueError(f"place {place}: classifier ids {ids.min()}..{ids.max()} outside the bank of {len(bank)}")
         areas = np.array([c.box[2] * c.box[3] for c in bank.classifiers], dtype=float)
-        area_ref = float(np.median(areas)) if len(areas) and np.all(areas > 0) else 1.0
-        return _LoadedPlace(data, bank, area_ref)
+        return _LoadedPlace(data, bank, reference_area(areas))
 
     def place(self, index: int) -> _LoadedPlace:
         """The decoded place (waits for a prefetch in flight)."""
         index = int(index)
         with self._lock:
-            if index in self._cache:
-                self._cache.move_to_end(index)
-                return self._cache[index]
+            cached = self._cache.get(index)
+            if cached is not None:
+                return cached
             fut = self._pending.pop(index, None)
         loaded = fut.result() if fut is not None else self._load(index)
         with self._lock:
-            self._cache[index] = loaded
-            self._cache.move_to_end(index)
-            while len(self._cache) > max(1, int(self.config["bank_cache"])):
-                self._cache.popitem(last=False)
+            self._cache.put(index, loaded)
         return loaded
 
     def prefetch(self, index: int | None) -> None:

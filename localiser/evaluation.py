@@ -31,6 +31,8 @@ from scipy.spatial import cKDTree
 
 from scenesig.surveys.geometry import interpolate_poses, yaw_of
 
+from .failure import FAILURE_DISTANCE_M, is_failure
+
 __all__ = ["ReferencePath", "lateral_heading_errors", "blind_distances", "coverage_metrics",
            "dead_reckoning_curve", "summary", "evaluate", "EvaluationResult", "travelled"]
 
@@ -167,8 +169,8 @@ def _over(b_prev: np.ndarray, step: np.ndarray, d) -> np.ndarray:
     return np.clip(b_prev + step - d, 0.0, step)
 
 
-def coverage_metrics(distances, localised, resets=None, failure_distance_m: float = 20.0,
-                     localised_within_m: float = 10.0, blind_over_m: float = 20.0) -> dict:
+def coverage_metrics(distances, localised, resets=None, failure_distance_m: float = FAILURE_DISTANCE_M,
+                     localised_within_m: float = 10.0, blind_over_m: float = FAILURE_DISTANCE_M) -> dict:
     """``localised_fraction``, ``failures``, ``failures_per_km``, ``blind_fraction_over_20m``.
 
     Parameters
@@ -194,7 +196,7 @@ def coverage_metrics(distances, localised, resets=None, failure_distance_m: floa
         failures, c = 0, 0.0
         for i in range(1, len(s)):
             c += s[i] - s[i - 1]
-            if c > failure_distance_m:
+            if is_failure(c, failure_distance_m):
                 failures += 1
                 c = 0.0
             if loc[i]:

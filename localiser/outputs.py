@@ -33,7 +33,7 @@ if TYPE_CHECKING:
     from .replay import ReplayResult
 
 __all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "FALSE_FIX_M", "reference_path", "map_relative_truth", "compute_metrics",
-           "write_frames_csv", "read_frames_csv", "write_outputs", "detection_rates", "read_output_files",
+           "write_frames_csv", "frames_csv_text", "read_frames_csv", "write_outputs", "detection_rates", "read_output_files",
            "read_localisation"]
 
 #: Columns of ``frames.csv`` (the errors are NaN without truth; the bounds NaN without a pose).
@@ -97,7 +97,9 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     generation, :mod:`scenesig.mapping.identity`), ``run_path`` (the run folder, for ``scenesig map update``);
     detection rates ``detections_per_frame_mean`` and ``inliers_per_detection_mean``
     (:func:`detection_rates`); ``frames_corrupt`` and ``corrupt_frames`` (frames skipped: image truncated
-    or corrupt); ``method_config`` (the method's settings); and in real-time mode ``frames_dropped``,
+    or corrupt); ``method_config`` (the method's settings); ``settings`` (every setting of the replay,
+    resolved: ``replay``, ``localiser``, ``posegraph``, ``method``, and ``relocalise`` without INS/GPS --
+    :func:`scenesig.localiser.replay.resolve_config`); and in real-time mode ``frames_dropped``,
     ``frames_detected``, ``odometry_queue_max``, ``odometry_coalesced`` and ``lag_max_s``.
 
     **The evaluation against truth** (:func:`truth_metrics`, only where the run has ``truth.tum``, else
@@ -210,6 +212,8 @@ def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> d
         "frames_corrupt": len(result.corrupt),
         "corrupt_frames": [run.frame_files[i] for i in result.corrupt] if run.frame_files else [],
         "method_config": result.method_config,
+        # every setting behind the result, resolved: replay, localiser, pose graph, method (+ relocaliser)
+        "settings": getattr(result, "settings", None) or {},
         "map_id": store.map_id,
         "map_generation": int(store.generation),
         "run_path": str(Path(run.root).resolve()) if run.root is not None else None,
@@ -381,6 +385,11 @@ def _fmt(v: float) -> str:
 def write_frames_csv(path: Path, result: ReplayResult, ev, bounds: dict | None = None) -> None:
     """``frames.csv`` (:data:`FRAMES_COLUMNS`): per frame the replay's record, the errors of ``ev`` (NaN
     without truth) and the 95 % bounds (:mod:`scenesig.localiser.uncertainty`)."""
+    atomic_write_text(path, frames_csv_text(result, ev, bounds))
+
+
+def frames_csv_text(result: ReplayResult, ev, bounds: dict | None = None) -> str:
+    """The text of ``frames.csv`` (see :func:`write_frames_csv`)."""
     n = len(result.times)
     b = bounds or {}
     cols = [b.get(c, np.full(n, np.nan)) for c in FRAMES_COLUMNS[8:]]
@@ -390,7 +399,7 @@ def write_frames_csv(path: Path, result: ReplayResult, ev, bounds: dict | None =
                                str(int(result.inliers[i])), str(int(result.localised[i])),
                                _fmt(ev.lateral_m[i]), _fmt(ev.heading_deg[i]),
                                _fmt(result.distance_since_localisation[i]), *(_fmt(c[i]) for c in cols)]))
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"
 
 
 def read_frames_csv(path) -> dict:

@@ -40,12 +40,13 @@ from scenesig.surveys.settings import merge_settings
 
 from . import _solver_kernel
 from .detector import Detector, Observation
+from .failure import FAILURE_DISTANCE_M, is_failure
 from .posegraph import PoseGraph
 from .se2 import PlaneSnapper
 from .solver import LocalisationConstraint, solve
 from .solver import default_config as solver_default
 
-__all__ = ["default_config", "MotionPrior", "Measurement", "WeakLocaliser", "SignatureLocaliser", "Localiser",
+__all__ = ["default_config", "signature_default_config", "MotionPrior", "Measurement", "WeakLocaliser", "SignatureLocaliser", "Localiser",
            "register_method", "make_method", "available_methods", "odometry_covariance"]
 
 #: Localiser-block parameters.  Sigmas are in GTSAM's Pose3 order (rotation rad, then translation m),
@@ -61,7 +62,7 @@ default_config = {
     # localisations the marginal becomes tighter than the map itself is accurate, and the solver
     # would then gate good localisations as "inconsistent with the prior".
     "prior_floor_sigma": [0.003, 0.003, 0.005, 0.2, 0.2, 0.05],
-    "failure_distance_m": 20.0,      # McManus et al. 2015, §4.3
+    "failure_distance_m": FAILURE_DISTANCE_M,   # McManus et al. 2015, §4.3 (localiser.failure)
     "lost_after_m": 10.0,            # beyond this distance blind the detector searches the whole image
     "max_heading_diff_deg": 90.0,    # a place passed the other way round is not "nearest"
     # Without an oracle (``oracle=None``): the covariance of a pose found by global localisation or
@@ -71,8 +72,13 @@ default_config = {
 }
 
 
-def _merge(config: dict | None, defaults: dict, what: str, open: tuple = ()) -> dict:
-    return merge_settings(defaults, config, what, open=open)
+#: Settings of the scene-signature method (:class:`SignatureLocaliser`): ``prior_gating`` False searches
+#: the whole image on every frame instead of the windows around the projections the motion prior predicts.
+signature_default_config = {
+    "detector": {},                  # overrides of localiser.detector.default_config
+    "solver": {},                    # overrides of localiser.solver.default_config
+    "prior_gating": True,
+}
 
 
 def odometry_covariance(T_increment: np.ndarray, sigma_per_sqrt_m, sigma_floor) -> np.ndarray:
@@ -215,13 +221,12 @@ class SignatureLocaliser(WeakLocaliser):
 
     def __init__(self, store: MapStore, camera: Camera, T_vehicle_camera: np.ndarray, config: dict | None = None):
         # The detector and the solver check their own sub-dicts (their default_config).
-        cfg = _merge(config, {"detector": {}, "solver": {}, "prior_gating": True}, "signature method",
-                     open=("detector", "solver"))
+        cfg = merge_settings(signature_default_config, config, "signature method", open=("detector", "solver"))
         self.prior_gating = bool(cfg["prior_gating"])
         self.store = store
         self.camera = camera
         self.T_vehicle_camera = np.asarray(T_vehicle_camera, dtype=float)
-        self.solver_config = _merge(cfg["solver"], solver_default, "solver")
+        self.solver_config = merge_settings(solver_default, cfg["solver"], "solver")
         self.detector = Detector(store, camera, T_vehicle_camera, cfg["detector"])
         self.color = False
         self._hog = None
@@ -328,7 +333,7 @@ class Localiser:
     """
 
     def __init__(self, store: MapStore, oracle: Callable[[float], np.ndarray] | None, config: dict | None = None):
-        cfg = _merge(config, default_config, "localiser", open=("posegraph",))   # PoseGraph checks it
+        cfg = merge_settings(default_config, config, "localiser", open=("posegraph",))   # PoseGraph checks it
         self.config = cfg
         self.store = store
         if len(store) < 2:
@@ -347,7 +352,7 @@ class Localiser:
         # oracle it is all there is before the first fix.  A bounded history of cumulative poses.
         self._odo_t: list[float] = []
         self._odo_T: list[np.ndarray] = []
-        self.graph = PoseGraph(config={**cfg["posegraph"], "failure_distance_m": cfg["failure_distance_m"]})
+        self.graph = PoseGraph(config=cfg["posegraph"] or None)
         self._oracle_cov = np.diag(np.asarray(cfg["oracle_sigma"], float) ** 2)
         self._floor = np.diag(np.asarray(cfg["prior_floor_sigma"], float) ** 2)
         self._max_dyaw = np.radians(cfg["max_heading_diff_deg"])
@@ -467,10 +472,11 @@ class Localiser:
         self.n_odometry += 1
 
     def check_failure(self, t: float) -> bool:
-        """The failure rule: blind for more than ``failure_distance_m`` -> reset from the oracle at t, or,
-        without an oracle, declare itself lost (once; dead reckoning goes on until a relocalisation)."""
+        """The failure rule (:func:`scenesig.localiser.failure.is_failure`): blind for more than ``failure_distance_m``
+        -> reset from the oracle at t, or, without an oracle, declare itself lost (once; dead reckoning goes
+        on until a relocalisation)."""
         with self._lock:
-            if self.lost or self.distance_since_localisation <= self.config["failure_distance_m"] + 1e-9:
+            if self.lost or not is_failure(self.distance_since_localisation, self.config["failure_distance_m"]):
                 return False
             self.failures += 1
             self.reset_times.append(float(t))

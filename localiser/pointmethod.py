@@ -36,9 +36,7 @@ covariance, so a far point whose depth is poorly known does not pull the transla
 """
 from __future__ import annotations
 
-import threading
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,6 +44,7 @@ import numpy as np
 from scenesig.mapping.pointmap import POINT_MAPS, keypoint_sigma, point_features, point_keyframes, point_map_covariances
 from scenesig.mapping.store import MapStore
 from scenesig.signatures.pointfeatures import PointFeatures, active_feature_cache, extract, match
+from scenesig.surveys.cache import LRUCache
 from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.geometry import Camera
 
@@ -89,13 +88,21 @@ def _merge(config: dict | None) -> dict:
         raise ValueError(f"match must be one of {MATCHERS}, got {cfg['match']!r}")
     if cfg["point_map"] not in POINT_MAPS:
         raise ValueError(f"point_map must be one of {POINT_MAPS}, got {cfg['point_map']!r}")
-    unknown = set(cfg["solver"]) - set(solver_default)
-    if unknown:
-        raise ValueError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(solver_default)}")
-    unknown = set(cfg["pnp"]) - set(default_pnp_config)
-    if unknown:
-        raise ValueError(f"unknown PnP option(s) {sorted(unknown)}; known: {sorted(default_pnp_config)}")
+    merge_settings(solver_default, cfg["solver"], "solver")          # checked here, passed on as overrides
+    merge_settings(default_pnp_config, cfg["pnp"], "PnP")
     return cfg
+
+
+def resolve_config(config: dict | None = None) -> dict:
+    """Every setting of the point-feature method, its sub-stages' included (features, GMS, solver,
+    PnP): what ``config`` (overrides of :data:`default_config`) amounts to."""
+    from scenesig.signatures.pointfeatures import default_config as features_default, gms_default_config
+
+    cfg = _merge(config)
+    return {**cfg, "features": merge_settings(features_default, cfg["features"], "point-feature"),
+            "gms": merge_settings(gms_default_config, cfg["gms"], "GMS"),
+            "solver": merge_settings(solver_default, cfg["solver"], "solver"),
+            "pnp": merge_settings(default_pnp_config, cfg["pnp"], "PnP")}
 
 
 def match_to_map(live: PointFeatures, mapf: PointFeatures, matcher: str = "ratio", ratio: float = 0.8,
@@ -235,8 +242,7 @@ class PointLocaliser(WeakLocaliser):
         self.store = store
         self.camera = camera
         self.T_vehicle_camera = np.asarray(T_vehicle_camera, dtype=float)
-        self._cache: OrderedDict[int, _MapPlace] = OrderedDict()
-        self._lock = threading.Lock()
+        self._cache = LRUCache(max(1, int(self.config["cache"])))   # decoded point maps (surveys.cache)
         pm = self.config["point_map"]
         if len(store) and not any(self._place(i).features is not None and len(self._place(i).features)
                                   for i in list(store.places)[: min(3, len(store))]):
@@ -261,17 +267,16 @@ class PointLocaliser(WeakLocaliser):
                 "prior_gating": cfg["prior_gating"],
                 "gate": {k: cfg[k] for k in ("window_sigmas", "min_radius_px", "max_window_fraction")},
                 "min_matches": cfg["min_matches"],
-                "estimator": {**default_pnp_config, **cfg["pnp"]},
-                "min_inliers": {**solver_default, **cfg["solver"]}["min_inliers"],
-                "solver": {**solver_default, **cfg["solver"]}}
+                "estimator": merge_settings(default_pnp_config, cfg["pnp"], "PnP"),
+                "min_inliers": merge_settings(solver_default, cfg["solver"], "solver")["min_inliers"],
+                "solver": merge_settings(solver_default, cfg["solver"], "solver")}
 
     # ------------------------------------------------------------------------------ map side
     def _place(self, index: int) -> _MapPlace:
         index = int(index)
-        with self._lock:
-            if index in self._cache:
-                self._cache.move_to_end(index)
-                return self._cache[index]
+        cached = self._cache.get(index)
+        if cached is not None:
+            return cached
         data = self.store.load_place(index)
         pm = self.config["point_map"]
         feats = point_features(data.points, self.kind, pm)
@@ -287,10 +292,7 @@ class PointLocaliser(WeakLocaliser):
                 cov = point_map_covariances(data.points, self.kind, pm, self.T_vehicle_camera)
             keyframe, T_pk = point_keyframes(data.points, self.kind, pm)
             mp = _MapPlace(feats, xyz, cov, keyframe, len(T_pk))
-        with self._lock:
-            self._cache[index] = mp
-            while len(self._cache) > max(1, int(self.config["cache"])):
-                self._cache.popitem(last=False)
+        self._cache.put(index, mp)
         return mp
 
     def prefetch(self, place):
@@ -386,8 +388,7 @@ class PointLocaliser(WeakLocaliser):
         return Measurement(c, n, res.n_inliers, res.reason, obs.ms, res.ms, True, extra)
 
     def close(self):
-        with self._lock:
-            self._cache.clear()
+        self._cache.clear()
 
 
 def _factory(kind, point_map):

@@ -18,8 +18,7 @@ Conventions: GTSAM ``Pose3`` -- tangent ``(ω, v)``, right perturbation ``T = T�
 covariances are of the increment in its end frame, localisation covariances are of the pose in the
 vehicle frame (what :mod:`scenesig.localiser.solver` produces).
 
-The failure rule of the paper (§4.3) lives here too: the distance travelled on dead reckoning since
-the last localisation, with a failure when it exceeds 20 m (:class:`DeadReckoningMonitor`).
+The failure rule of the paper (§4.3) is the localiser block's, not the graph's: :mod:`scenesig.localiser.failure`.
 """
 from __future__ import annotations
 
@@ -35,7 +34,7 @@ from scenesig.surveys.geometry import invert
 
 from .solver import pose_exp, pose_log
 
-__all__ = ["default_config", "PoseGraph", "DeadReckoningMonitor"]
+__all__ = ["default_config", "PoseGraph"]
 
 default_config = {
     "window_seconds": 5.0,        # smoother lag: keyframes older than this are marginalised
@@ -45,7 +44,6 @@ default_config = {
                                   # do not see gets σ = 1000 m / rad instead of a singular system
     "relinearize_threshold": 0.01,
     "extra_iterations": 1,        # extra iSAM2 iterations after a localisation (it can move the window)
-    "failure_distance_m": 20.0,   # McManus et al. 2015, §4.3: more than 20 m blind is a failure
 }
 
 
@@ -62,44 +60,12 @@ def _check_spd(M, name) -> np.ndarray:
     return check_covariance(M, 6, name, symmetrise=True)
 
 
-class DeadReckoningMonitor:
-    """Distance travelled on dead reckoning since the last localisation, and the failure rule.
-
-    Parameters
-    ----------
-    failure_distance_m : a failure is declared when the blind distance exceeds this (paper: 20 m).
-    """
-
-    def __init__(self, failure_distance_m: float = 20.0):
-        if not failure_distance_m > 0:
-            raise ValueError(f"failure_distance_m must be > 0, got {failure_distance_m}")
-        self.failure_distance_m = float(failure_distance_m)
-        self.distance_m = 0.0
-
-    def travel(self, distance_m: float) -> None:
-        """Add distance driven without a localisation."""
-        if distance_m < 0:
-            raise ValueError(f"distance must be >= 0, got {distance_m}")
-        self.distance_m += float(distance_m)
-
-    def localised(self) -> None:
-        """A localisation was accepted: the blind distance restarts."""
-        self.distance_m = 0.0
-
-    reset = localised  # an oracle reset also restarts the count (the next failure needs 20 m more)
-
-    @property
-    def failed(self) -> bool:
-        # The slack keeps float round-off of summed increments from declaring a failure at exactly 20 m.
-        return self.distance_m > self.failure_distance_m + 1e-6
-
-
 class PoseGraph:
     """Sliding-window smoother of ``T_world_vehicle`` with odometry and localisation constraints.
 
     Parameters
     ----------
-    window_seconds, keyframe_interval_s, huber_k, failure_distance_m :
+    window_seconds, keyframe_interval_s, huber_k :
         shortcuts for the :data:`default_config` entries of the same name.
     config : further overrides of :data:`default_config`.
 
@@ -113,17 +79,15 @@ class PoseGraph:
     """
 
     def __init__(self, window_seconds: float | None = None, keyframe_interval_s: float | None = None,
-                 huber_k: float | None = None, failure_distance_m: float | None = None,
-                 config: dict | None = None):
+                 huber_k: float | None = None, config: dict | None = None):
         cfg = merge_settings(default_config, config, "pose-graph")
         for k, v in (("window_seconds", window_seconds), ("keyframe_interval_s", keyframe_interval_s),
-                     ("huber_k", huber_k), ("failure_distance_m", failure_distance_m)):
+                     ("huber_k", huber_k)):
             if v is not None:
                 cfg[k] = float(v)
         if cfg["window_seconds"] <= cfg["keyframe_interval_s"]:
             raise ValueError("window_seconds must exceed keyframe_interval_s")
         self.config = cfg
-        self.monitor = DeadReckoningMonitor(cfg["failure_distance_m"])
         self._smoother = None
         self._marginals: dict = {}
         self._next_index = 0
@@ -145,15 +109,6 @@ class PoseGraph:
         self._require()
         return self._odo_times[-1] if self._odo_times else self._kf_times[-1]
 
-    @property
-    def distance_since_localisation(self) -> float:
-        return self.monitor.distance_m
-
-    @property
-    def failed(self) -> bool:
-        """True when more than ``failure_distance_m`` was travelled blind since the last localisation."""
-        return self.monitor.failed
-
     def _new_key(self) -> int:
         key = gtsam.symbol("x", self._next_index)
         self._next_index += 1
@@ -163,7 +118,7 @@ class PoseGraph:
     def reset(self, t: float, T_world_vehicle: np.ndarray, cov: np.ndarray) -> None:
         """(Re)start the graph at time ``t`` with a prior pose (initialisation, or an oracle reset).
 
-        Everything before is forgotten and the blind distance restarts.
+        Everything before is forgotten.
         """
         T = _check_pose(T_world_vehicle, "T_world_vehicle")
         cov = _check_spd(cov, "cov")
@@ -188,7 +143,6 @@ class PoseGraph:
         # Running odometry from the latest keyframe to the latest sample.
         self._acc_T = np.eye(4)
         self._acc_cov = np.zeros((6, 6))
-        self.monitor.reset()
 
     # --------------------------------------------------------------------------- odometry
     def add_odometry(self, t: float, T_increment: np.ndarray, cov: np.ndarray) -> None:
@@ -211,7 +165,6 @@ class PoseGraph:
         Ad = _adjoint(invert(inc))
         self._acc_cov = Ad @ self._acc_cov @ Ad.T + cov
         self._acc_T = self._acc_T @ inc
-        self.monitor.travel(float(np.linalg.norm(inc[:3, 3])))
         if t - self._kf_times[-1] >= self.config["keyframe_interval_s"] - 1e-9:
             self._add_keyframe()
 
@@ -338,7 +291,6 @@ class PoseGraph:
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.PriorFactorPose3(key, gtsam.Pose3(T), noise))
         self._update(graph, gtsam.Values(), {}, extra_iterations=int(self.config["extra_iterations"]))
-        self.monitor.localised()
         return True
 
     def _keyframe_at(self, t: float) -> int:

@@ -31,6 +31,7 @@ import numpy as np
 from scenesig.mapping.store import MapStore
 from scenesig.signatures import globaldesc
 from scenesig.surveys.geometry import yaw_of
+from scenesig.surveys.settings import merge_settings
 
 from scenesig.signatures.bank import limit_blas_threads
 from .pipeline import Localiser, Measurement, MotionPrior, WeakLocaliser
@@ -87,8 +88,8 @@ class PlaceRetrieval:
         self.store = store
         self.ids = np.array(sorted(store.places), dtype=int)
         self._pos = {int(i): k for k, i in enumerate(self.ids)}
-        self.config = {**globaldesc.default_config,
-                       **((store.params.get("config", {}) or {}).get("descriptor") or {})}
+        self.config = merge_settings(globaldesc.default_config,
+                                     (store.params.get("config", {}) or {}).get("descriptor") or None, "descriptor")
         D, owner = place_descriptors(store)
         self.D = D
         self.owner = np.array([self._pos[int(o)] for o in owner], dtype=int)
@@ -156,10 +157,7 @@ class Relocaliser:
 
     def __init__(self, store: MapStore, method: WeakLocaliser, localiser: Localiser, config: dict | None = None,
                  retrieval=None):
-        unknown = set(config or {}) - set(default_config)
-        if unknown:
-            raise ValueError(f"unknown relocalisation option(s) {sorted(unknown)}; known: {sorted(default_config)}")
-        self.config = {**default_config, **(config or {})}
+        self.config = merge_settings(default_config, config, "relocalisation")
         self.store = store
         self.method = method
         self.loc = localiser

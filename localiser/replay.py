@@ -68,16 +68,18 @@ from .pipeline import Localiser, Measurement, WeakLocaliser, make_method
 
 log = logging.getLogger(__name__)
 
-__all__ = ["default_config", "ORACLES", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
-           "localise", "FRAMES_COLUMNS", "TIMING_KEYS"]
+__all__ = ["default_config", "DEFAULT_EVERY", "resolve_config", "method_settings", "ORACLES", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
+           "localise", "localise_run", "FRAMES_COLUMNS", "TIMING_KEYS"]
 
 log = logging.getLogger(__name__)
 
+#: Deterministic mode: the detector on every N-th frame -- McManus et al. 2015, §4.3: "every 4th image",
+#: 5 Hz on a 20 Hz camera.  The one default of ``every`` (a call argument, like ``realtime`` and ``speed``).
+DEFAULT_EVERY = 4
+
 default_config = {
-    "every": 4,                  # deterministic mode: detector on every N-th frame
     "prefetch": True,            # deterministic mode: load and prepare (WeakLocaliser.prepare) the next
                                  # detector frame on a worker thread while the current one is processed
-    "speed": 1.0,                # real-time mode: playback speed (2 = twice as fast as recorded)
     "odometry_queue": 10,        # real-time mode: odometry samples allowed to wait; when the feed falls
                                  # further behind (CPU load), the oldest waiting samples are composed into
                                  # one increment (exact in pose), so the backlog never grows without bound
@@ -122,6 +124,7 @@ class ReplayResult:
     relocalisations: list = field(default_factory=list)  # oracle "none": (t_lost, t_found) pairs
     covariances: np.ndarray | None = None    # (N,6,6) marginal covariance of each frame's pose (vehicle frame,
                                              # GTSAM order: rotation, translation); NaN without a pose
+    settings: dict = field(default_factory=dict)   # every setting of the replay, resolved (resolve_config)
 
     def __post_init__(self):
         if self.valid is None:
@@ -456,7 +459,59 @@ def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=N
             "odometry_queue_max": queue_max, "odometry_coalesced": coalesced, "lag_max_s": lag_max}
 
 
-def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signatures", every: int = 4,
+def resolve_config(config: dict | None = None, method: str = "signatures") -> dict:
+    """Every setting of a replay, resolved: ``config`` (overrides of :data:`default_config`) merged with
+    the defaults of each stage it configures -- ``localiser`` (:data:`scenesig.localiser.pipeline.default_config`,
+    its ``posegraph`` :data:`scenesig.localiser.posegraph.default_config`), ``relocalise``
+    (:data:`scenesig.localiser.relocalise.default_config`) and ``method`` (:func:`method_settings`).  A misspelt
+    key anywhere is a ``ValueError`` naming it."""
+    from .pipeline import default_config as localiser_default
+    from .posegraph import default_config as posegraph_default
+    from .relocalise import default_config as relocalise_default
+
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
+    loc = merge_settings(localiser_default, cfg["localiser"], "localiser", open=("posegraph",))
+    loc["posegraph"] = merge_settings(posegraph_default, loc["posegraph"], "pose-graph")
+    cfg["localiser"] = loc
+    cfg["relocalise"] = merge_settings(relocalise_default, cfg["relocalise"], "relocalisation")
+    cfg["method"] = method_settings(method, cfg["method"])
+    return cfg
+
+
+def method_settings(method: str, config: dict | None = None) -> dict:
+    """The resolved settings of a registered method: scene signatures
+    (:data:`scenesig.localiser.pipeline.signature_default_config` with its detector's and solver's), the point-feature
+    methods (:func:`scenesig.localiser.pointmethod.resolve_config`); another method's overrides as given."""
+    from .detector import default_config as detector_default
+    from .pipeline import signature_default_config
+    from .solver import default_config as solver_default
+
+    if method == "signatures":
+        cfg = merge_settings(signature_default_config, config, "signature method", open=("detector", "solver"))
+        cfg["detector"] = merge_settings(detector_default, cfg["detector"], "detector")
+        cfg["solver"] = merge_settings(solver_default, cfg["solver"], "solver")
+        return cfg
+    if method in ("orb", "sift", "orb-all", "sift-all"):
+        from .pointmethod import resolve_config as point_config
+
+        return point_config({"point_map": "all" if method.endswith("-all") else "reference", **(config or {})})
+    return dict(config or {})
+
+
+def _settings(cfg: dict, every: int | None, realtime: bool, speed: float, oracle: str) -> dict:
+    """``metrics.json``'s ``settings``: the replay's, the localiser's, the pose graph's, the
+    relocaliser's (without INS/GPS only) and the method's, each resolved."""
+    loc = {k: v for k, v in cfg["localiser"].items() if k != "posegraph"}
+    replay_cfg = {k: v for k, v in cfg.items() if k not in ("localiser", "method", "relocalise")}
+    out = {"replay": {**replay_cfg, "oracle": oracle, "every": every, "realtime": bool(realtime),
+                      "speed": float(speed) if realtime else None},
+           "localiser": loc, "posegraph": cfg["localiser"]["posegraph"], "method": cfg["method"]}
+    if oracle == "none":
+        out["relocalise"] = cfg["relocalise"]
+    return _json_safe(out)
+
+
+def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signatures", every: int = DEFAULT_EVERY,
            realtime: bool = False, speed: float = 1.0, config: dict | None = None,
            progress: bool = False, oracle: str | None = None, retrieval=None) -> ReplayResult:
     """Localise one run against a map.
@@ -476,6 +531,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
         :class:`scenesig.localiser.relocalise.PlaceRetrieval`).
     """
     cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
+    resolved = resolve_config(config, method if isinstance(method, str) else method.name)
     oracle = oracle or cfg["oracle"]
     if oracle not in ORACLES:
         raise ValueError(f"oracle must be one of {ORACLES}, got {oracle!r}")
@@ -530,7 +586,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
                         rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times),
                         dict(sorted(rec.corrupt.items())), timings, _json_safe(method.method_config()),
                         oracle, loc.oracle_reads, rec.valid.copy(), loc.first_fix_time, list(loc.relocalisations),
-                        rec.covariances)
+                        rec.covariances, _settings(resolved, None if realtime else every, realtime, speed, oracle))
 
 
 def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
@@ -549,7 +605,7 @@ def _json_safe(obj):
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
-def localise(map_root, run_root, out, method: str = "signatures", every: int = 4, realtime: bool = False,
+def localise(map_root, run_root, out, method: str = "signatures", every: int = DEFAULT_EVERY, realtime: bool = False,
              speed: float = 1.0, config: dict | None = None, progress: bool = True, figure: bool = True,
              oracle: str | None = None) -> dict:
     """Open the map and the run, replay, write the outputs; returns ``metrics.json``'s content.
@@ -559,22 +615,40 @@ def localise(map_root, run_root, out, method: str = "signatures", every: int = 4
     read without ``groundtruth.tum``, ``gps.csv`` and ``truth.tum``; the truth is read for the
     evaluation after the replay.
     """
+    result, store = localise_run(map_root, run_root, method, every=every, realtime=realtime, speed=speed,
+                                 config=config, progress=progress, oracle=oracle)
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
+    return write_outputs(result, store, out, cfg["max_path_distance_m"], figure=figure)
+
+
+def localise_run(map_root, run_root, method: str = "signatures", every: int = DEFAULT_EVERY, realtime: bool = False,
+                 speed: float = 1.0, config: dict | None = None, progress: bool = True,
+                 oracle: str | None = None) -> tuple[ReplayResult, MapStore]:
+    """:func:`localise` without writing: ``(result, store)``.  ``run_root`` is a run folder or a
+    :class:`SurveyRun` already read (it must then carry its INS/GPS for ``oracle="ins"``)."""
     import dataclasses
 
     store = map_root if isinstance(map_root, MapStore) else MapStore.open(map_root)
     cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
     oracle = oracle or cfg["oracle"]
     blind = oracle == "none"
-    run = read_run(run_root, skip=("groundtruth", "gps", "truth") if blind else ())
+    given = isinstance(run_root, SurveyRun)
+    if given:
+        run = run_root
+        if blind:        # the localiser must not see the INS/GPS, nor the truth
+            run = dataclasses.replace(run, groundtruth_times=None, groundtruth_poses=None, truth_times=None,
+                                      truth_poses=None, gps=None)
+    else:
+        run = read_run(run_root, skip=("groundtruth", "gps", "truth") if blind else ())
     if not blind:
         _oracle(run)          # no INS/GPS: say so before anything else (DataError naming groundtruth.tum)
     _warn_weak_places(store, run)
     result = replay(store, run, method, every=every, realtime=realtime, speed=speed, config=config,
                     progress=progress, oracle=oracle)
     if blind:       # the evaluation's truth, read only now
-        truth = read_run(run_root, check_images=False, skip=("groundtruth", "gps"))
+        truth = run_root if given else read_run(run_root, check_images=False, skip=("groundtruth", "gps"))
         result.run = dataclasses.replace(run, truth_times=truth.truth_times, truth_poses=truth.truth_poses)
-    return write_outputs(result, store, out, cfg["max_path_distance_m"], figure=figure)
+    return result, store
 
 
 def method_options(method: str, match: str | None = None, point_map: str | None = None,

@@ -388,8 +388,6 @@ def _lm_gtsam(prob: _Problem, T0: np.ndarray, idx: np.ndarray, W: np.ndarray):
 
 
 # ------------------------------------------------------------------------------------ driver
-def _merge(config: dict | None, defaults: dict) -> dict:
-    return merge_settings(defaults, config, "solver")
 
 
 def _solve(prob: _Problem, T_init: np.ndarray, idx0: np.ndarray, t_start: float, extra=None) -> SolveResult:
@@ -486,7 +484,7 @@ def solve(uv, R, landmarks, T_place_vehicle_prior, P_prior, camera: Camera, T_ve
     uv : (N,2) detections z_k^i, pixels (distorted, as observed).
     R : (N,2,2) detection covariances (eq. 5, pixels²).
     landmarks : (N,3) landmark positions p_p^i in the place frame, one per detection.
-    T_place_vehicle_prior : (4,4) motion prior T̂ (the spec's T̂_k,p inverted); also the LM start.
+    T_place_vehicle_prior : (4,4) motion prior T̂ (McManus et al. 2015's T̂_k,p, eq. 10, inverted); also the LM start.
     P_prior : (6,6) its covariance, GTSAM Pose3 convention (rotation first, right perturbation).
     camera : :class:`scenesig.surveys.geometry.Camera`.
     T_vehicle_camera : (4,4) extrinsic.
@@ -500,7 +498,7 @@ def solve(uv, R, landmarks, T_place_vehicle_prior, P_prior, camera: Camera, T_ve
         "too_few_inliers", "low_inlier_fraction", "inconsistent_with_prior", "degenerate", "diverged"}.
     """
     t0 = time.perf_counter()
-    cfg = _merge(config, default_config)
+    cfg = merge_settings(default_config, config, "solver")
     prob = _Problem(uv, R, landmarks, landmark_cov, camera, T_vehicle_camera, T_place_vehicle_prior, P_prior, cfg)
     return _solve(prob, prob.T_prior, np.arange(len(prob.uv)), t0)
 
@@ -528,8 +526,8 @@ def solve_pnp_prior(uv, points, camera: Camera, T_vehicle_camera, T_place_vehicl
         ``"pnp_failed"`` when RANSAC finds no pose.
     """
     t0 = time.perf_counter()
-    cfg = _merge(config, default_config)
-    pcfg = _merge(pnp_config, default_pnp_config)
+    cfg = merge_settings(default_config, config, "solver")
+    pcfg = merge_settings(default_pnp_config, pnp_config, "PnP")
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     n = len(uv)
     if R is None:

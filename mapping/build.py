@@ -64,7 +64,7 @@ from scenesig.mapping.refine import Detections, REASONS, refine_landmarks
 from scenesig.mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
 from scenesig.surveys.io import atomic_write_bytes
 
-__all__ = ["default_config", "build_map", "build_place", "mine_and_refine", "MinedPlace", "mining_images",
+__all__ = ["default_config", "resolve_config", "build_map", "build_place", "mine_and_refine", "MinedPlace", "mining_images",
            "place_views", "place_negatives", "vet_images", "load_config"]
 
 log = logging.getLogger(__name__)
@@ -108,9 +108,31 @@ default_config = {
 
 
 def _merge(config):
-    # every sub-dict is passed on whole to its stage, which checks it
+    # every sub-dict is passed on whole to its stage, which checks it (resolve_config checks them all first)
     return merge_settings(default_config, config, "build",
                           open=tuple(k for k, v in default_config.items() if isinstance(v, dict)))
+
+
+def resolve_config(config: dict | None = None) -> dict:
+    """Every build setting, resolved: ``config`` (overrides of :data:`default_config`) merged with the
+    defaults of each stage it configures -- places, mining (with its HOG), refinement, point map (with its
+    features), window detection, georeferencing, single-experience rule, place descriptor.  A misspelt
+    key anywhere is a ``ValueError`` naming it.  The manifest records this (``params.settings``)."""
+    from scenesig.mapping import pointmap
+    from scenesig.mapping.refine import default_config as refine_default
+    from scenesig.signatures import mining
+
+    cfg = _merge(config)
+    return {**cfg,
+            "places": merge_settings(places_mod.default_config, cfg["places"], "places"),
+            "mining": mining.resolve_config(cfg["mining"]),
+            "refine": merge_settings(refine_default, cfg["refine"], "refinement"),
+            "points": pointmap.resolve_config(cfg["points"]),
+            "detect": merge_settings(bank_default_config, cfg["detect"], "detection"),
+            "georeference": georef_mod.resolve_config(cfg["georeference"]),
+            "single_experience": merge_settings(experience.default_config, cfg["single_experience"],
+                                                "single-experience", open=("mining",)),
+            "descriptor": merge_settings(globaldesc.default_config, cfg["descriptor"], "descriptor")}
 
 
 def _subsample(window: np.ndarray, centre: int, n: int, positions: np.ndarray | None = None) -> np.ndarray:
@@ -214,7 +236,7 @@ def mining_images(seed: int, views: list, images: list, config: dict | None = No
     import cv2
 
     cfg = _merge(config)
-    pcfg = {**places_mod.default_config, **cfg["places"]}
+    pcfg = merge_settings(places_mod.default_config, cfg["places"], "places")
     per_run = frames_per_run(cfg, len(views))
     out = list(images)
     for v in views:
@@ -323,7 +345,7 @@ def mine_and_refine(views: list, negatives: list[np.ndarray], cfg: dict, rng: in
             area[:, f] = np.nan_to_num(d.width[:, 0] * d.height[:, 0], nan=0.0)
         # the scales the detector searched (nominal level +- scale_search): refinement gates firings by
         # the scale the landmark's depth predicts (mapping.refine, "scale_tolerance")
-        ss = int({**bank_default_config, **cfg["detect"]}["scale_search"])
+        ss = int(merge_settings(bank_default_config, cfg["detect"], "detection")["scale_search"])
         spo = int(bank.hog["scales_per_octave"])
         scale_range = np.array([[level_scale(c.level + ss, spo), level_scale(max(0, c.level - ss), spo)]
                                 for c in bank.classifiers], dtype=float)
@@ -425,13 +447,18 @@ def _place_task(place, views, negatives, config, pooled: bool = False):
 
     ``pooled``: one of several worker processes -- OpenCV runs on one thread, as BLAS does: the
     places keep every core busy, and two OpenCV threads per worker would only contend (its parallel
-    loops split rows, so the results are the same either way).
+    loops split rows, so the results are the same either way).  Set for the task only, and restored.
     """
-    if pooled:
-        import cv2
+    if not pooled:
+        return place.index, build_place(place, views, negatives, config)
+    import cv2
 
-        cv2.setNumThreads(1)
-    return place.index, build_place(place, views, negatives, config)
+    saved = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return place.index, build_place(place, views, negatives, config)
+    finally:
+        cv2.setNumThreads(saved)
 
 
 def vet_images(runs: list[SurveyRun], jobs: int = 1, progress: bool = True) -> list[list]:
@@ -500,6 +527,11 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     from tqdm import tqdm
 
     cfg = _merge(config)
+    settings = resolve_config(config)     # checks every stage's keys before anything is written
+    if scheduler is not None:             # ... and that a cluster can be used
+        from scenesig.surveys.extras import require
+
+        require("distributed", "distributed", "build-map --scheduler (a Dask cluster)")
     out = Path(out)
     train = [reference] + [r for r in runs if r.name != reference.name]
     names = [r.name for r in train]
@@ -528,7 +560,7 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
         log.warning(f"a map from one survey run ({reference.name}): each place is mined from up to {n} frames "
                     f"around it and augmented copies of them (at least {int(cfg['min_images'])} images); it "
                     f"has seen one appearance, so expect it to localise runs of similar appearance only")
-    params = {"config": cfg, "reference": reference.name, "runs": names}
+    params = {"config": cfg, "settings": settings, "reference": reference.name, "runs": names}
     if left_out:                 # only then: maps built from clean runs keep their bytes
         params["frames_left_out"] = left_out
     writer = MapWriter(out, reference.camera, reference.T_vehicle_camera, params)

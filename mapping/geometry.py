@@ -29,7 +29,7 @@ from scenesig.surveys.geometry import Camera, invert
 __all__ = [
     "window_poses_from_increments", "window_poses_from_odometry", "camera_poses", "ideal_camera",
     "ideal_pixels", "reproject", "reproject_jacobian", "anchor_rays", "ray_points", "derotate_pixels",
-    "camera_depth",
+    "camera_depth", "reference_area", "detection_covariance_factor",
 ]
 
 
@@ -246,3 +246,30 @@ def camera_depth(P_place: np.ndarray, T_vehicle_camera: np.ndarray) -> np.ndarra
     T_c_v = invert(np.asarray(T_vehicle_camera, dtype=float))
     P = np.asarray(P_place, dtype=float)
     return P @ T_c_v[2, :3] + T_c_v[2, 3]
+
+
+def reference_area(areas) -> float:
+    """The patch area ``a`` is measured in units of: the median of ``areas`` (pixels), 1 when there are
+    none or one is not positive.  Dividing by it makes eq. 5's ``a / (λ s)`` dimensionless, so ``Q`` keeps
+    its meaning -- the covariance of a typical patch at full scale and certainty."""
+    areas = np.asarray(areas, dtype=float)
+    return float(np.median(areas)) if areas.size and np.all(areas > 0) else 1.0
+
+
+def detection_covariance_factor(area, prob, scale, area_ref: float, inverse: bool = False):
+    """McManus et al. 2015, eq. 5: a detection's covariance is ``R = a / (λ s) · Q``; this is the factor
+    ``a / (λ s)`` (``inverse``: its reciprocal ``λ s / a``, the information factor ``R⁻¹ = (λ s / a) Q⁻¹``),
+    with ``a = area / area_ref`` (:func:`reference_area`), λ the detection probability (Platt) and s
+    the pyramid scale it fired at.  Element-wise over arrays.
+
+    Who chooses ``area_ref``: the landmark refinement (:func:`scenesig.mapping.refine.refine_landmarks`) uses the
+    median area of the firings it weighs against each other in the window; the live detector
+    (:mod:`scenesig.localiser.detector`) and the georeferencing (:mod:`scenesig.mapping.georef`) use the median box area
+    of the place's classifiers, which does not depend on which of them fired in one image.  Both make
+    ``a`` about 1 for a typical patch.  The two sets differ, and aligning them would change every
+    landmark and covariance of a built map, so each keeps the set it was built and tuned with.
+    """
+    a = np.asarray(area, float) / float(area_ref)
+    if inverse:
+        return np.asarray(prob, float) * np.asarray(scale, float) / a
+    return a / (np.asarray(prob, float) * np.asarray(scale, float))

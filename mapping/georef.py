@@ -44,11 +44,11 @@ import numpy as np
 from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.geometry import (Camera, exp_so3, interpolate_poses, invert, make_pose, point_pose_jacobian, rot_z,
                               yaw_of)
-from scenesig.mapping.geometry import ideal_camera, ideal_pixels
+from scenesig.mapping.geometry import detection_covariance_factor, ideal_camera, ideal_pixels, reference_area
 from scenesig.mapping.refine import _huber_weight
 from scenesig.mapping.refine import default_config as refine_defaults
 
-__all__ = ["default_config", "RelativePose", "solve_relative_pose", "observe_place", "combine_estimates",
+__all__ = ["default_config", "resolve_config", "RelativePose", "solve_relative_pose", "observe_place", "combine_estimates",
            "smooth_corrections", "georeference_places", "METHODS"]
 
 METHODS = ("runs", "reference")
@@ -81,7 +81,8 @@ default_config = {
 }
 
 
-def _merge(config: dict | None) -> dict:
+def resolve_config(config: dict | None = None) -> dict:
+    """Every georeferencing setting: ``config`` (overrides of :data:`default_config`) resolved and checked."""
     cfg = merge_settings(default_config, config, "georeference")
     if cfg["method"] not in METHODS:
         raise ValueError(f"georeference method must be one of {METHODS}, got {cfg['method']!r}")
@@ -236,7 +237,7 @@ def solve_relative_pose(uv, landmarks, camera: Camera, T_vehicle_camera, R=None,
     """
     import cv2
 
-    cfg = _merge(config)
+    cfg = resolve_config(config)
     uv = np.asarray(uv, float).reshape(-1, 2)
     P = np.asarray(landmarks, float).reshape(-1, 3)
     n = len(uv)
@@ -338,14 +339,14 @@ def observe_place(place, views: list, images: list, bank, landmarks, covariances
         ``reason``, ``T_place_vehicle`` (or None), ``position_sigma_m``, ``detections``, ``inliers``,
         ``rms_px``.  Empty with ``method="reference"``.
     """
-    cfg = _merge(config)
+    cfg = resolve_config(config)
     if cfg["method"] == "reference":
         return []
     Q = np.asarray(refine_defaults["Q"] if Q is None else Q, float)
     landmarks = np.asarray(landmarks, float).reshape(-1, 3)
     covariances = np.asarray(covariances, float).reshape(-1, 3, 3)
     areas = np.array([c.box[2] * c.box[3] for c in bank.classifiers], float) if len(bank) else np.zeros(0)
-    area_ref = float(np.median(areas)) if len(areas) and np.all(areas > 0) else 1.0
+    area_ref = reference_area(areas)
     out = []
     for k, (v, img) in enumerate(zip(views, images)):
         rec = {"run": v.run.name, "frame": int(v.frame), "T_world_vehicle_ins": _ins_pose(v.run, v.frame).tolist()}
@@ -361,8 +362,9 @@ def observe_place(place, views: list, images: list, bank, landmarks, covariances
             x, y, prob, s = d.x[:, 0], d.y[:, 0], d.prob[:, 0], d.scale[:, 0]
             good = np.isfinite(x) & np.isfinite(y) & (prob >= float(cfg["min_probability"])) & (s > 0)
             uv = np.where(good[:, None], np.column_stack([x, y]), np.nan)
-            a = np.nan_to_num(d.width[:, 0] * d.height[:, 0], nan=area_ref) / area_ref
-            kq = np.where(good, a / np.where(good, prob * s, 1.0), 1.0)
+            kq = np.where(good, detection_covariance_factor(np.nan_to_num(d.width[:, 0] * d.height[:, 0], nan=area_ref),
+                                                            np.where(good, prob, 1.0), np.where(good, s, 1.0),
+                                                            area_ref), 1.0)
             R = kq[:, None, None] * Q[None]                  # eq. 5
             rp = solve_relative_pose(uv, landmarks, v.run.camera, v.run.T_vehicle_camera, R, covariances, cfg)
             rec.update(ok=bool(rp.ok), reason=rp.reason,
@@ -411,7 +413,7 @@ def combine_estimates(T_reference: np.ndarray, estimates, usable, config: dict |
         ``runs_used``, ``spread_m`` (RMS horizontal distance of the used estimates from their combination),
         ``max_deviation_m``.
     """
-    cfg = _merge(config)
+    cfg = resolve_config(config)
     E = np.asarray(estimates, float).reshape(-1, 4, 4)
     use = np.asarray(usable, bool).reshape(-1)
     if not use.any():
@@ -489,7 +491,7 @@ def georeference_places(places, observations: dict, config: dict | None = None):
     extras : dict place index -> JSON dict for the manifest (``method``, ``runs_used``, ``runs_total``,
         ``spread_m``, ``correction_m``, ``correction_yaw_deg``, ``pnp_failed``, ``T_reference_ins_place``).
     """
-    cfg = _merge(config)
+    cfg = resolve_config(config)
     places = sorted(places, key=lambda p: p.index)
     if cfg["method"] == "reference":
         return ({p.index: np.asarray(p.T_world_place, float) for p in places},

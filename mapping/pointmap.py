@@ -57,7 +57,7 @@ from scenesig.signatures.pointfeatures import PointFeatures, extract, match
 from scenesig.signatures.pointfeatures import default_config as features_default
 from scenesig.mapping.geometry import camera_poses, ideal_camera, ideal_pixels, reproject_jacobian
 
-__all__ = ["default_config", "build_point_features", "build_point_features_all", "combine_keyframe_maps",
+__all__ = ["default_config", "resolve_config", "build_point_features", "build_point_features_all", "combine_keyframe_maps",
            "point_keyframes",
            "point_map_covariances", "POINT_MAPS", "triangulate_keyframe", "triangulate_tracks",
            "point_covariances", "point_features", "select_frames", "keypoint_sigma", "add_to_map", "KINDS",
@@ -92,6 +92,13 @@ def _merge(config: dict | None) -> dict:
     return cfg
 
 
+def resolve_config(config: dict | None = None) -> dict:
+    """Every point-map setting, its features' included: ``config`` (overrides of :data:`default_config`)."""
+    cfg = _merge(config)
+    cfg["features"] = merge_settings(features_default, cfg["features"], "point-feature")
+    return cfg
+
+
 class TriangulationStats(dict):
     """Counts of one keyframe's triangulation (a dict: ``candidates``, ``tracked``, ``triangulated``,
     ``kept`` and the rejections ``behind``, ``depth``, ``reprojection``, ``parallax``)."""
@@ -106,7 +113,7 @@ def keypoint_sigma(features: PointFeatures, pixel_sigma: float = 1.0, config: di
     """
     oct_ = np.asarray(features.octave, dtype=np.int64)
     if features.kind == "orb":
-        f = float({**features_default["orb"], **((config or {}).get("orb", {}))}["scaleFactor"])
+        f = float(merge_settings(features_default, config, "point-feature")["orb"]["scaleFactor"])
         scale = f ** np.clip(oct_, 0, None)
     else:
         o = oct_ & 255

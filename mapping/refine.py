@@ -31,7 +31,7 @@ from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.geometry import Camera, invert
 from scenesig.mapping.geometry import (
     anchor_rays, camera_depth, camera_poses, derotate_pixels, ideal_camera, ideal_pixels, ray_points,
-    reproject, reproject_jacobian,
+    reproject, reproject_jacobian, detection_covariance_factor, reference_area,
 )
 
 __all__ = ["default_config", "REASONS", "Detections", "RefineResult", "refine_landmarks",
@@ -577,12 +577,12 @@ def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_v
     valid = np.isfinite(z_obs).all(axis=2) & (s > 0) & (lamb > 0) & (a > 0)
     area_ref = cfg["area_ref"]
     if area_ref is None:
-        area_ref = float(np.median(a[valid])) if valid.any() else 1.0
+        area_ref = reference_area(a[valid])
     if not area_ref > 0:
         raise ValueError(f"area_ref must be > 0, got {area_ref}")
-    a = a / float(area_ref)
     with np.errstate(divide="ignore", invalid="ignore"):
-        k = np.where(valid, lamb * s / a, 0.0)  # R^-1 = k Q^-1, eq. 5
+        # R^-1 = k Q^-1, eq. 5
+        k = np.where(valid, detection_covariance_factor(a, lamb, s, area_ref, inverse=True), 0.0)
     z_obs = np.where(valid[..., None], z_obs, np.nan)
     T_cp = camera_poses(T_wp, T_vc)
 

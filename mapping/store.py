@@ -39,13 +39,14 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
-from collections import OrderedDict, namedtuple
+from collections import namedtuple
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
+from scenesig.surveys.cache import LRUCache
 from scenesig.surveys.validation import check_pose
 from scenesig.surveys.errors import DataError
 from scenesig.surveys.io import append_line, atomic_write_bytes, fsync_dir, make_dirs, remove_stale_temps
@@ -394,10 +395,8 @@ class MapStore:
     def __init__(self, root: Path, doc: dict, cache_size: int):
         self.root = root
         self.manifest_path = root / MANIFEST
-        self._cache: OrderedDict[int, PlaceData] = OrderedDict()
-        self._cache_size = max(0, int(cache_size))
+        self._cache = LRUCache(cache_size)       # decoded places (surveys.cache)
         self._lock = threading.Lock()
-        self._hits = self._misses = 0
         self._set_doc(doc)
 
     def _set_doc(self, doc: dict) -> None:
@@ -467,9 +466,9 @@ class MapStore:
         old = dict(self.places)
         with self._lock:
             self._set_doc(doc)
-            for i in list(self._cache):
+            for i in self._cache.keys():
                 if i not in self.places or old.get(i) is None or old[i].sha256 != self.places[i].sha256:
-                    del self._cache[i]
+                    self._cache.discard(i)
         return True
 
     def verify(self) -> None:
@@ -486,12 +485,9 @@ class MapStore:
         if index not in self.places:
             raise KeyError(f"map {self.root} has no place {index} (places: {self._idx.min() if len(self) else '-'}"
                            f"..{self._idx.max() if len(self) else '-'})")
-        with self._lock:
-            if index in self._cache:
-                self._hits += 1
-                self._cache.move_to_end(index)
-                return self._cache[index]
-            self._misses += 1
+        cached = self._cache.get(index)
+        if cached is not None:
+            return cached
         meta = self.places[index]
         try:
             raw = self._read_place_bytes(meta)
@@ -505,18 +501,13 @@ class MapStore:
         for a in (data.landmarks, data.covariances, data.classifier_ids, *data.bank_arrays.values(),
                   *data.points.values()):
             a.flags.writeable = False  # cached and shared: a caller's in-place edit must not leak
-        with self._lock:
-            if self._cache_size:
-                self._cache[index] = data
-                self._cache.move_to_end(index)
-                while len(self._cache) > self._cache_size:
-                    self._cache.popitem(last=False)
+        self._cache.put(index, data)
         return data
 
     def cache_info(self) -> CacheInfo:
         """Hits, misses and size of the place cache."""
-        with self._lock:
-            return CacheInfo(self._hits, self._misses, len(self._cache), self._cache_size)
+        c = self._cache
+        return CacheInfo(c.hits, c.misses, len(c), c.size)
 
     def nearest_place(self, query, max_heading_diff: float | None = np.pi / 2) -> int:
         """Index of the place nearest a position or pose.

@@ -3,7 +3,8 @@
 Every command lives in :mod:`scenesig.commands` as a module with ``register(groups)`` -- which adds its
 parser to ``groups[""]`` (the top level) or to a group such as ``groups["map"]`` and sets
 ``_run=run`` -- and ``run(args) -> int``.  This file only assembles the parser and owns the one error
-handler: :class:`scenesig.surveys.errors.DataError` (bad input, named file and line) becomes
+handler: :class:`scenesig.surveys.errors.DataError` (bad input, named file and line) and
+:class:`scenesig.surveys.extras.MissingExtraError` (an optional dependency missing) become
 ``scenesig: error: ...`` and exit status 2; Ctrl-C exits 130, a closed output pipe 141.  Heavy imports
 (GTSAM, Dask) happen inside the command that needs them, so ``scenesig --help`` stays fast.
 """
@@ -14,6 +15,7 @@ import importlib
 import sys
 
 from scenesig.surveys.errors import DataError
+from scenesig.surveys.extras import MissingExtraError
 
 #: command modules under ``scenesig.commands``, in the order ``scenesig --help`` lists them
 COMMANDS = (
@@ -23,6 +25,7 @@ COMMANDS = (
     "map_show",
     "map_update",
     "localise",
+    "compare",
     "evaluate",
     "report",
     "experiment",
@@ -30,6 +33,7 @@ COMMANDS = (
     "importers",
     "check",
     "aerial",
+    "config",
 )
 
 #: second-level command groups (``scenesig GROUP ACTION``); a group appears once a command uses it
@@ -40,6 +44,7 @@ GROUPS = {
     "import": "Convert other data sets to survey runs.",
     "export": "Write results in other formats.",
     "aerial": "UAV image to satellite-map matching.",
+    "config": "Settings: presets and every stage's resolved values.",
 }
 
 
@@ -81,9 +86,12 @@ def main(argv=None) -> int:
     if extra and not getattr(args, "_pass_extra", False):
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     args._extra = extra
+    from scenesig.runtime import configure
+
+    configure()          # process-wide tuning (malloc, OpenCV threads): the command line's, not the library's
     try:
         return int(args._run(args) or 0)
-    except DataError as exc:
+    except (DataError, MissingExtraError) as exc:
         print(f"scenesig: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

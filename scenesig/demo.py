@@ -102,9 +102,13 @@ def _localise_task(map_root, run_root: str, out: str, entry: str, every: int) ->
 def _one_thread() -> None:
     """A pool worker's OpenCV on one thread: the pool already keeps every core busy, and OpenCV's own
     threads (two per worker by default) would only contend with the other worker (results do not
-    depend on it: OpenCV's parallel loops split rows, not sums)."""
+    depend on it: OpenCV's parallel loops split rows, not sums); and the command line's process tuning
+    (:func:`scenesig.runtime.configure`), which a fresh worker process does not inherit."""
     import cv2
 
+    from scenesig.runtime import configure
+
+    configure()
     cv2.setNumThreads(1)
 
 

@@ -40,10 +40,10 @@ from scenesig.surveys.run import SurveyRun, read_run
 
 from scenesig.localiser.evaluation import dead_reckoning_curve, lateral_heading_errors, travelled
 from scenesig.localiser.outputs import read_output_files, reference_path
-from scenesig.localiser.pointmethod import default_config as point_default
+from scenesig.localiser.pointmethod import resolve_config as resolve_point_config
 from scenesig.localiser.pointmethod import match_to_map
 
-__all__ = ["default_config", "MatchingResult", "aligned_frame", "signature_matches", "point_matches",
+__all__ = ["default_config", "resolve_config", "MatchingResult", "aligned_frame", "signature_matches", "point_matches",
            "matching_experiment", "LocaliseOutput", "read_localise_output", "find_localise_outputs",
            "frame_distances", "ins_errors", "speed", "dead_reckoning", "summary_rows", "find_runs"]
 
@@ -63,7 +63,14 @@ def _merge(config: dict | None) -> dict:
     bad = [m for m in cfg["methods"] if m not in ("signatures", "orb", "sift")]
     if bad:
         raise ValueError(f"unknown method(s) {bad}; choose from signatures, orb, sift")
+    resolve_point_config(cfg["point"])          # checked here (point_matches resolves it per call)
     return cfg
+
+
+def resolve_config(config: dict | None = None) -> dict:
+    """Every setting of the matching experiment, its point-feature matcher's included (resolved)."""
+    cfg = _merge(config)
+    return {**cfg, "point": resolve_point_config(cfg["point"])}
 
 
 # ==================================================================================================
@@ -141,7 +148,7 @@ def point_matches(points: dict, kind: str, image: np.ndarray, delta_px: float = 
     """
     from scenesig.signatures.pointfeatures import extract
 
-    cfg = {**point_default, **(config or {})}
+    cfg = resolve_point_config(config)
     mapf = point_features(points, kind)
     if mapf is None or not len(mapf):
         return 0, np.zeros((0, 4)), 0

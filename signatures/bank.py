@@ -33,7 +33,7 @@ from scenesig.surveys.settings import merge_settings
 
 from scenesig.signatures.hog import FEATURE_DIM, HogPyramid, build_pyramid, default_config as hog_default
 from scenesig.signatures.hog import (REGION_MARGIN_CELLS, assemble_pyramid, build_level, level_plan, level_scale,
-                            level_size, thread_map, as_hog_input, tune_malloc, window_cell)
+                            level_size, thread_map, as_hog_input, window_cell)
 
 __all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce", "limit_blas_threads"]
 
@@ -432,7 +432,6 @@ class Bank:
         """:meth:`pyramid` and :func:`_score_all` in one: each level's features and then its filter
         responses are one task, so on several threads one level is scored while another is
         described.  The same pyramid and score maps as the two steps."""
-        tune_malloc()
         cfg = merge_settings(hog_default, self.hog, "HOG")
         img = as_hog_input(image, bool(cfg["color"]))
         size = img.shape[1::-1]

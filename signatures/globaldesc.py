@@ -29,6 +29,8 @@ import base64
 import cv2
 import numpy as np
 
+from scenesig.surveys.settings import merge_settings
+
 from .hog import fhog
 
 __all__ = ["default_config", "describe", "quantise", "dequantise", "encode", "decode", "similarity"]
@@ -54,7 +56,7 @@ def _resize(image: np.ndarray, width: int) -> np.ndarray:
 
 def describe(image: np.ndarray, config: dict | None = None) -> np.ndarray:
     """The unit-norm float32 descriptor of one gray or BGR image."""
-    cfg = {**default_config, **(config or {})}
+    cfg = merge_settings(default_config, config, "descriptor")
     small = _resize(image, cfg["width"])
     if cfg["kind"] == "hog":
         v = fhog(small, cell=int(cfg["cell"])).ravel().astype(np.float32)

@@ -293,7 +293,7 @@ def train_bank(ds, place_index: int, train: list, live: int, cfg: dict):
     images = [_load(place, s, scale) for s in g.train]
     offsets = [[place.displacement(ref, s) * scale if s != ref else 0.0, 0.0] for s in g.train]
     map_offset = {s: o[0] for s, o in zip(g.train, offsets)}
-    if len(images) < int(mining._merge(mcfg)["n_partitions"]):
+    if len(images) < int(mining.resolve_config(mcfg)["n_partitions"]):
         # Too few appearances to partition: synthesised copies of the real images stand in.
         images, offsets = synthesise(images, offsets, int(cfg["augment_copies"]), rng,
                                      float(cfg["augment_shift_px"]) * scale, exp["conditions"])

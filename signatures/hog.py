@@ -45,7 +45,7 @@ from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "FEATURE_DIM", "fhog", "HogPyramid", "build_pyramid", "level_scale",
            "level_size", "window_cell", "resize_area_region", "to_gray_float", "REGION_MARGIN_CELLS",
-           "level_plan", "build_level", "assemble_pyramid", "thread_map", "ScaledImages", "load_compiled"]
+           "level_plan", "build_level", "assemble_pyramid", "thread_map", "set_parallel_section", "ScaledImages", "load_compiled"]
 
 #: HOG parameters.  Every classifier stores the values it was trained with; detection refuses a
 #: pyramid built with different ones.
@@ -70,34 +70,6 @@ _EPS = 1e-4
 _FULL_FRACTION = 0.8
 
 
-_MALLOC_TUNED = False
-
-
-def tune_malloc() -> bool:
-    """Keep freed memory in the process heap instead of returning it to the OS (glibc only).
-
-    A pyramid allocates a few MB of temporaries per level.  glibc serves such blocks with mmap and
-    trims the heap after each free, so every level pays ~4 ms of page faults on a 640x480 image --
-    as much as the arithmetic.  Raising the mmap and trim thresholds (64 MB / 256 MB) removes that
-    cost; the price is that up to 256 MB of freed memory stays mapped.  Called once, lazily, by
-    :func:`fhog` and :func:`build_pyramid`; set the environment variable ``SCENESIG_NO_MALLOPT=1``
-    to skip it.  Returns True if the thresholds were set.
-    """
-    global _MALLOC_TUNED
-    if _MALLOC_TUNED:
-        return True
-    _MALLOC_TUNED = True   # try once only
-    import sys
-    if os.environ.get("SCENESIG_NO_MALLOPT") or not sys.platform.startswith("linux"):
-        return False
-    try:
-        import ctypes
-        libc = ctypes.CDLL("libc.so.6")
-        m_trim_threshold, m_mmap_threshold = -1, -3
-        ok = libc.mallopt(m_mmap_threshold, 64 << 20) and libc.mallopt(m_trim_threshold, 256 << 20)
-        return bool(ok)
-    except (OSError, AttributeError):
-        return False
 
 
 def load_compiled() -> None:
@@ -337,7 +309,6 @@ def fhog(image: np.ndarray, cell: int = 8, clip: float = 0.2, color: bool = Fals
     """
     if cell < 2 or cell % 2:
         raise ValueError(f"cell must be an even number of pixels >= 2, got {cell}")
-    tune_malloc()
     img = to_gray_float(image, color)
     hc, wc = img.shape[0] // cell, img.shape[1] // cell
     if hc < 1 or wc < 1:
@@ -649,7 +620,6 @@ def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None, re
         With ``regions`` recording the partly computed levels.
     """
     cfg = merge_settings(default_config, config, "HOG")
-    tune_malloc()        # before the first resize, not only the first fhog (see tune_malloc)
     img = as_hog_input(image, bool(cfg["color"]))
     plan = level_plan(img.shape[1::-1], cfg, levels, regions)
     feats = thread_map(lambda p: build_level(img, p[1], p[2], cfg, full_fraction), plan, threads,
@@ -690,42 +660,17 @@ def assemble_pyramid(image_size, cfg: dict, plan: list, feats: list) -> HogPyram
 
 
 # ------------------------------------------------------------------------------------ threads
-_POOLS: dict[int, "ThreadPoolExecutor"] = {}
-_POOLS_LOCK = threading.Lock()
-_CV_LOCK = threading.Lock()
-_CV_STATE = {"users": 0, "saved": None}
+# What thread_map's threaded section runs inside: nothing by default -- the library never changes
+# process-wide state.  The runtime layer (scenesig.runtime.configure) installs OpenCV-on-one-thread.
+_PARALLEL_SECTION = contextlib.nullcontext
 
 
-@contextlib.contextmanager
-def _opencv_single_threaded():
-    """OpenCV's own thread pool set to one thread while the block runs (nested and concurrent
-    blocks share one save / restore).  When the callers already keep the cores busy, OpenCV's
-    workers only add their busy-waiting: two level threads each running OpenCV on two threads took
-    ~20 % more CPU than with OpenCV on one, for the same wall time."""
-    with _CV_LOCK:
-        if _CV_STATE["users"] == 0:
-            _CV_STATE["saved"] = cv2.getNumThreads()
-            cv2.setNumThreads(1)
-        _CV_STATE["users"] += 1
-    try:
-        yield
-    finally:
-        with _CV_LOCK:
-            _CV_STATE["users"] -= 1
-            if _CV_STATE["users"] == 0:
-                cv2.setNumThreads(_CV_STATE["saved"])
-
-
-def _forget_pools() -> None:
-    """In a forked child: the parent's pool threads do not exist there; start afresh."""
-    global _POOLS_LOCK, _CV_LOCK
-    _POOLS.clear()
-    _POOLS_LOCK, _CV_LOCK = threading.Lock(), threading.Lock()
-    _CV_STATE.update(users=0, saved=None)
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pools)
+def set_parallel_section(factory) -> None:
+    """Make :func:`thread_map` run its threads inside ``factory()`` (a context manager factory; None:
+    nothing).  The command line's runtime layer (:mod:`scenesig.runtime`) sets OpenCV's own thread pool
+    to one thread there, as the threads already keep the cores busy."""
+    global _PARALLEL_SECTION
+    _PARALLEL_SECTION = factory or contextlib.nullcontext
 
 
 def _usable_cpus() -> int:
@@ -736,25 +681,16 @@ def _usable_cpus() -> int:
         return os.cpu_count() or 1
 
 
-def _pool(workers: int):
-    with _POOLS_LOCK:
-        pool = _POOLS.get(workers)
-        if pool is None:
-            from concurrent.futures import ThreadPoolExecutor
-            pool = _POOLS[workers] = ThreadPoolExecutor(workers, thread_name_prefix="hog")
-        return pool
-
-
 def thread_map(fn, items, threads: int = 1, cost=None) -> list:
-    """``[fn(x) for x in items]`` on ``threads`` threads: the calling one and ``threads - 1`` workers
-    of a shared pool take the items one at a time, the costliest first (``cost``, one number per
+    """``[fn(x) for x in items]`` on ``threads`` threads: the calling one and ``threads - 1`` helper
+    threads of this call (no pool outlives it) take the items one at a time, the costliest first (``cost``, one number per
     item).  The results come back in the order of ``items`` and each is computed exactly as a
     serial loop would, so threads change the time, never the result.
 
     Pyramid levels are the natural unit: OpenCV and numpy's large array operations release the
     GIL, so two levels run on two cores (about 1.5x, not 2x, on two idle cores: numpy's many
-    small operations hold it).  Meanwhile OpenCV runs on one thread of its own
-    (:func:`_opencv_single_threaded`).  The first exception raised by ``fn`` is re-raised.
+    small operations hold it).  The threads run inside the section :func:`set_parallel_section`
+    installs (the command line: OpenCV on one thread).  The first exception raised by ``fn`` is re-raised.
     """
     items = list(items)
     threads = max(1, min(int(threads), len(items), _usable_cpus()))
@@ -777,13 +713,13 @@ def thread_map(fn, items, threads: int = 1, cost=None) -> list:
             except BaseException as exc:  # noqa: BLE001 - re-raised in the calling thread
                 failed.append(exc)
 
-    with _opencv_single_threaded():
-        helpers = [_pool(threads - 1).submit(work) for _ in range(threads - 1)]
+    with _PARALLEL_SECTION():
+        helpers = [threading.Thread(target=work, name=f"hog-{k}", daemon=True) for k in range(threads - 1)]
+        for h in helpers:
+            h.start()
         work()
         for h in helpers:
-            # A helper that has not started (the pool busy, e.g. a nested call) has nothing left to do.
-            if not h.cancel():
-                h.result()
+            h.join()
     if failed:
         raise failed[0]
     return out

@@ -443,9 +443,10 @@ def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: floa
         gap = float(np.mean(d2[finite] - d1[finite])) if finite.any() else 0.0
         keep &= d1 < d2 - gap
     elif filter == "gms":
-        cfg = {**gms_default_config, **(gms or {})}
-        size_a = cfg.pop("image_size_a", None) or a.image_shape[::-1]
-        size_b = cfg.pop("image_size_b", None) or b.image_shape[::-1]
+        gms = dict(gms or {})
+        size_a = gms.pop("image_size_a", None) or a.image_shape[::-1]     # call arguments, not settings
+        size_b = gms.pop("image_size_b", None) or b.image_shape[::-1]
+        cfg = merge_settings(gms_default_config, gms, "GMS")
         q = np.flatnonzero(keep)
         ok = gms_filter(a.xy[q], b.xy[idx[q]], size_a, size_b, **cfg)
         keep[q[~ok]] = False

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from scenesig.signatures import hog as hogmod
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["BACKGROUND_FILE", "estimate_background", "load_background", "whitening_kernel",
            "whiten_level", "whiten_pyramid", "fold_filter", "main"]
@@ -61,7 +62,7 @@ def estimate_background(images, levels=range(0, 9), hog_config: dict | None = No
         E[(x(r, c) - mu)(x(r + dy, c + dx) - mu)^T]``, ``cells`` (number of cells averaged) and the
         HOG parameters.
     """
-    cfg = {**hogmod.default_config, **(hog_config or {})}
+    cfg = merge_settings(hogmod.default_config, hog_config, "HOG")
     m = int(max_offset)
     feats = []
     for img in images:

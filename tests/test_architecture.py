@@ -67,3 +67,27 @@ def test_lint_imports_passes(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(tree)}   # this checkout, not an installed copy
     proc = subprocess.run([exe, "--no-cache"], cwd=tree, capture_output=True, text=True, timeout=300, env=env)
     assert proc.returncode == 0 and " 0 broken" in proc.stdout, proc.stdout[-4000:] + proc.stderr[-2000:]
+
+
+def test_architecture_doc_names_every_module_and_benchmark():
+    """docs/architecture.md is the newcomer's map: every module of every package (a sub-package by its
+    folder, e.g. ``sim/``) and every benchmark of ``scenesig bench`` must be named there."""
+    from pathlib import Path
+
+    from scenesig.commands.bench import BENCHMARKS
+
+    root = Path(__file__).resolve().parents[1]
+    doc = (root / "docs" / "architecture.md").read_text(encoding="utf-8")
+    missing = []
+    for pkg in ("surveys", "signatures", "mapping", "localiser", "aerial", "scenesig"):
+        for path in sorted((root / pkg).rglob("*.py")):
+            rel = path.relative_to(root / pkg)
+            if path.name in ("__init__.py", "__main__.py"):
+                continue
+            if len(rel.parts) > 1:              # a sub-package: its folder named is enough
+                if f"`{rel.parts[0]}/`" not in doc:
+                    missing.append(f"{pkg}/{rel.parts[0]}/")
+            elif f"`{path.name}`" not in doc and f"{pkg}.{path.stem}" not in doc:
+                missing.append(f"{pkg}/{path.name}")
+    missing += [f"benchmark {name}" for name in BENCHMARKS if f"`{name}`" not in doc]
+    assert not missing, f"docs/architecture.md does not name: {sorted(set(missing))}"

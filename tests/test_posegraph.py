@@ -3,7 +3,8 @@ import gtsam
 import numpy as np
 import pytest
 
-from scenesig.localiser.posegraph import DeadReckoningMonitor, PoseGraph
+from scenesig.localiser.failure import FAILURE_DISTANCE_M, is_failure
+from scenesig.localiser.posegraph import PoseGraph
 from scenesig.localiser.solver import pose_exp, pose_log
 from scenesig.surveys.geometry import invert, make_pose, rot_z
 
@@ -52,7 +53,6 @@ def test_recovers_known_pose_from_noisy_odometry_and_localisations():
     assert err_dead > 5.0                           # odometry alone is far off ...
     assert np.mean(err) < 0.7 * np.mean(err_loc)    # ... the graph beats its own localisations
     assert np.max(err) < 0.8 and np.mean(err_yaw) < 0.6
-    assert g.distance_since_localisation < 2.1 and not g.failed
 
 
 def test_matches_full_batch_optimisation():
@@ -194,34 +194,27 @@ def test_covariance_grows_blind_and_shrinks_when_localised():
     assert np.trace(g.covariance()[3:, 3:]) < 0.5 * sizes[-1]
 
 
-def test_failure_rule_and_reset():
+def test_reset_restarts_the_graph():
     truth = trajectory(60, speed=10.0, yaw_rate=0.0)   # 0.5 m per sample
-    g = PoseGraph(failure_distance_m=20.0)
+    g = PoseGraph()
     g.reset(0.0, truth[0], START_COV)
-    for k in range(1, 41):
+    for k in range(1, 42):
         g.add_odometry(k * DT, invert(truth[k - 1]) @ truth[k], ODO_COV)
-    assert g.distance_since_localisation == pytest.approx(20.0) and not g.failed
-    g.add_odometry(41 * DT, invert(truth[40]) @ truth[41], ODO_COV)
-    assert g.failed
     g.reset(41 * DT, truth[41], START_COV)
-    assert not g.failed and g.distance_since_localisation == 0.0
     assert g.estimate() == pytest.approx(truth[41])
-    g.add_odometry(42 * DT, invert(truth[41]) @ truth[42], ODO_COV)
-    g.add_localisation(42 * DT, truth[42], cov=LOC_COV)
-    assert g.distance_since_localisation == 0.0
+    assert np.trace(g.covariance()) == pytest.approx(np.trace(START_COV))
 
 
-def test_dead_reckoning_monitor():
-    m = DeadReckoningMonitor(20.0)
-    for _ in range(20):
-        m.travel(1.0)
-    assert not m.failed
-    m.travel(0.01)
-    assert m.failed
-    m.localised()
-    assert m.distance_m == 0.0 and not m.failed
-    with pytest.raises(ValueError):
-        m.travel(-1.0)
+def test_failure_rule_once():
+    # McManus et al. 2015, §4.3: more than 20 m blind; summed increments at exactly 20 m are not a failure
+    assert FAILURE_DISTANCE_M == 20.0
+    assert not is_failure(sum([1.0] * 20)) and not is_failure(sum([0.1] * 200))
+    assert is_failure(20.01) and is_failure(6.0, failure_distance_m=5.0)
+    with pytest.raises(ValueError, match="failure_distance_m"):
+        is_failure(1.0, failure_distance_m=0.0)
+    # the pose graph has no failure rule of its own (nothing to overwrite a user's setting with)
+    with pytest.raises(ValueError, match="failure_distance_m"):
+        PoseGraph(config={"failure_distance_m": 5.0})
 
 
 def test_bad_input():

@@ -137,8 +137,19 @@ def test_thread_map_keeps_order_raises_and_nests():
         return x * x
 
     items = list(range(9))
+    # the library alone leaves OpenCV's threads as they are ...
     assert hog.thread_map(square, items, threads=2, cost=items) == [x * x for x in items]
-    assert cv_threads == {1} and cv2.getNumThreads() == before      # OpenCV on one thread meanwhile
+    assert cv_threads == {before}
+    # ... the command line's runtime layer runs the threads with OpenCV on one thread, and restores it
+    from scenesig.runtime import opencv_single_threaded
+
+    cv_threads.clear()
+    hog.set_parallel_section(opencv_single_threaded)
+    try:
+        assert hog.thread_map(square, items, threads=2, cost=items) == [x * x for x in items]
+    finally:
+        hog.set_parallel_section(None)
+    assert cv_threads == {1} and cv2.getNumThreads() == before
     assert hog.thread_map(square, items, threads=1) == [x * x for x in items]
     assert hog.thread_map(square, [], threads=2) == []
 
@@ -149,7 +160,7 @@ def test_thread_map_keeps_order_raises_and_nests():
 
     with pytest.raises(KeyError, match="three"):
         hog.thread_map(boom, items, threads=2)
-    # A call from inside a pool worker (its only helper busy) must not wait for itself.
+    # nested calls (each with helper threads of its own)
     assert hog.thread_map(lambda x: sum(hog.thread_map(square, range(x), threads=2)), [3, 4], threads=2) == [5, 14]
     assert cv2.getNumThreads() == before
 

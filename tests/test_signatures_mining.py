@@ -85,6 +85,31 @@ def test_fast_svm_matches_sklearn_svc():
     np.testing.assert_allclose(coef @ K + b, ref.decision_function(K), atol=1e-8)
 
 
+def test_private_libsvm_binding_is_used_within_the_pinned_scikit_learn_range(monkeypatch):
+    """Mining calls scikit-learn's private ``sklearn.svm._libsvm.fit`` (McManus et al. 2015, §3.2: thousands
+    of small SVM fits; the public ``SVC.fit`` costs ten times the solve in input checks).  pyproject.toml
+    pins scikit-learn to the range this was checked on; this test fails when the installed version leaves
+    that range or the private binding stops working there -- then re-check it and move the pin."""
+    import re
+    from pathlib import Path
+
+    import sklearn
+    import sklearn.svm
+
+    text = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
+    lo, hi = re.search(r'"scikit-learn>=([0-9.]+),<([0-9.]+)"', text).groups()
+
+    def key(v):
+        return tuple(int(p) for p in re.findall(r"\d+", v)[:2])
+
+    assert key(lo) <= key(sklearn.__version__) < key(hi), f"scikit-learn {sklearn.__version__} outside [{lo}, {hi})"
+    monkeypatch.setattr(sklearn.svm, "SVC", None)        # the public fallback unavailable: the private path must work
+    rng = np.random.default_rng(1)
+    X = rng.normal(size=(20, 6))
+    coef, b = mining._svm_dual(X @ X.T, 4, 0.1, 4.0)
+    assert np.isfinite(coef).all() and np.isfinite(b) and np.count_nonzero(coef) > 0
+
+
 def test_synthetic_place_fires_within_8px_on_held_out_condition():
     images, offsets = synthetic_place(13, 240, 180, seed=3, max_shift=10)
     shapes_cfg = {"kinds": [{"name": "sq", "size": 0.22, "aspect": 1.0, "nx": 5, "ny": 4},

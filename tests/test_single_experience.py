@@ -126,7 +126,7 @@ _SHAPES = {"kinds": [{"name": "square-m", "size": 0.25, "aspect": 1.0, "nx": 5, 
 def test_multi_scale_and_whitened_mining_give_valid_banks():
     images, offsets = synthetic_place(6, 192, 144, seed=0, max_shift=4.0)
     big = {"kinds": [{"name": "square-l", "size": 0.45, "aspect": 1.0, "nx": 4, "ny": 2}]}
-    cfg = mining._merge({"shapes": big})
+    cfg = mining.resolve_config({"shapes": big})
     base, st0 = mining.mine_place(images, offsets, config={"shapes": big})
     multi, st1 = mining.mine_place(images, offsets, config={"shapes": big, "extra_octaves": 1})
     assert st1.n_shapes == 2 * st0.n_shapes
@@ -141,7 +141,7 @@ def test_multi_scale_and_whitened_mining_give_valid_banks():
     white, _ = mining.mine_place(images, offsets, config={"shapes": _SHAPES, "whiten": True})
     assert len(white) > 0
     c = white[0]
-    k, fh, fw = mining.shape_geometry(c.box, mining._merge({"shapes": _SHAPES}))
+    k, fh, fw = mining.shape_geometry(c.box, mining.resolve_config({"shapes": _SHAPES}))
     assert c.filter_shape == (fh + 2, fw + 2)                      # folded: one cell wider per side
     d = white.detect(images[0], top_n=1)
     assert np.isfinite(d.x[:, 0]).mean() > 0.9

@@ -3,12 +3,13 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 from ._types import positive_int
 
 
 def register(groups):
+    from scenesig.presets import preset_names
+
     help = "Build a map (a bank of scene signatures per place) from survey runs."
     p = groups[""].add_parser("build-map", help=help, description=help)
     p.add_argument("runs", nargs="+", metavar="RUN", help="training survey runs")
@@ -22,10 +23,13 @@ def register(groups):
                         "1 with six runs or more)")
     p.add_argument("--config", default=None,
                    help="build options (overrides of mapping.build.default_config) as JSON text or a .json file")
+    p.add_argument("--preset", choices=preset_names(), default=None,
+                   help="settings preset under --config (default: the project's defaults; paper: McManus et al. "
+                        "2015's values where ours differ -- scenesig config show --preset paper --differences)")
     p.add_argument("--skip-corrupt", action="store_true",
                    help="leave out frames whose image is truncated or corrupt (counted in build_summary.json) "
                         "instead of stopping")
-    p.set_defaults(_run=run)
+    p.set_defaults(_run=run, _parser=p)
 
 
 def print_places(summary: dict, file=sys.stderr) -> None:
@@ -45,17 +49,19 @@ def print_places(summary: dict, file=sys.stderr) -> None:
 
 
 def run(args) -> int:
-    from scenesig.mapping.build import build_map, load_config
-    from scenesig.surveys.run import read_run
+    from scenesig.mapping.build import load_config, resolve_config
+    from scenesig.api import build_map
+    from scenesig.presets import apply_preset
 
-    runs = [read_run(r) for r in args.runs]
-    ref_path = Path(args.reference).resolve()
-    reference = next((r for r in runs if r.root.resolve() == ref_path), None) or read_run(args.reference)
     config = load_config(args.config) or {}
     if args.frames_per_run is not None:
         config["frames_per_run"] = int(args.frames_per_run)
-    summary = build_map(runs, reference, args.out, jobs=args.jobs, scheduler=args.scheduler, config=config,
-                        skip_corrupt=args.skip_corrupt)
+    try:
+        resolve_config(apply_preset("build", config, args.preset))     # a misspelt option: exit 2, nothing read
+    except (TypeError, ValueError) as exc:
+        args._parser.error(f"--config: {exc}")
+    summary = build_map(args.runs, args.reference, args.out, jobs=args.jobs, scheduler=args.scheduler,
+                        config=config, preset=args.preset, skip_corrupt=args.skip_corrupt)
     print_places(summary)
     print(json.dumps({k: v for k, v in summary.items() if k != "per_place"}, indent=2))
     return 0

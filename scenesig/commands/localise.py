@@ -11,6 +11,8 @@ METHODS = ("signatures", "orb", "sift", "orb-all", "sift-all")
 
 
 def register(groups):
+    from scenesig.presets import preset_names
+
     help = "Localise a replayed traverse against a map."
     p = groups[""].add_parser("localise", help=help, description=help)
     p.add_argument("map", help="map folder")
@@ -25,26 +27,40 @@ def register(groups):
                    help="match / search the whole image instead of around the odometry prior's predictions")
     p.add_argument("--out", required=True, help="output folder")
     mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--every", type=positive_int, default=4, help="detector on every N-th frame (deterministic)")
+    mode.add_argument("--every", type=positive_int, default=None,
+                      help="detector on every N-th frame (deterministic; default 4: 5 Hz on a 20 Hz camera)")
     mode.add_argument("--realtime", action="store_true", help="threads and queues, stale frames dropped")
     p.add_argument("--speed", type=float, default=1.0,
                    help="with --realtime: replay speed as a multiple of the recorded rate (default 1)")
     p.add_argument("--oracle", choices=("ins", "none"), default="ins",
                    help="ins (default, the paper's protocol): start and reset from the run's INS/GPS; none: no "
                         "INS/GPS -- global localisation from the map at start-up, relocalisation when lost")
+    p.add_argument("--config", default=None,
+                   help="replay options (overrides of localiser.replay.default_config: localiser, method, "
+                        "relocalise, ...) as JSON text or a .json file")
+    p.add_argument("--preset", choices=preset_names(), default=None,
+                   help="settings preset under --config (paper: McManus et al. 2015's values where ours differ)")
     p.set_defaults(_run=run, _parser=p)
 
 
 def run(args) -> int:
-    from scenesig.localiser.replay import localise, method_options
+    from scenesig.localiser.replay import method_options, resolve_config
+    from scenesig.mapping.build import load_config
+    from scenesig.api import localise
+    from scenesig.presets import apply_preset
 
     try:
         opts = method_options(args.method, args.match, args.point_map, not args.no_prior_gating)
-    except ValueError as exc:
+        config = load_config(args.config) or {}
+        if opts:
+            config["method"] = {**(config.get("method") or {}), **opts}
+        resolve_config(apply_preset("localise", config, args.preset), args.method)   # misspelt options: exit 2
+    except (TypeError, ValueError) as exc:
         args._parser.error(str(exc))
-    metrics = localise(args.map, args.run, args.out, method=args.method, every=args.every or 4,
-                       realtime=bool(args.realtime), speed=float(args.speed or 1.0), oracle=args.oracle,
-                       config={"method": opts} if opts else None)
+    loc = localise(args.map, args.run, method=args.method, every=args.every, realtime=bool(args.realtime),
+                   speed=float(args.speed or 1.0), oracle=args.oracle, config=config or None, preset=args.preset,
+                   progress=True)
+    metrics = loc.write(args.out)
     keys = ("method", "run", "oracle", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
             "blind_fraction_over_20m", "first_fix_m", "relocalisations", "false_fixes", "lateral_bound_95_m_median",
             "bound_coverage_95", "truth_source", "realtime_factor", "frames_corrupt", "frames_dropped")

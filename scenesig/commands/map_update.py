@@ -5,6 +5,8 @@ import json
 
 
 def register(groups):
+    from scenesig.presets import preset_names
+
     help = "Add live runs' appearance to the places where their localisation was weak (lifelong map)."
     p = groups["map"].add_parser("update", help=help, description=help + " See mapping/update.py for the rule.")
     p.add_argument("map", help="map folder (updated in place, atomically, unless --out)")
@@ -14,6 +16,7 @@ def register(groups):
     p.add_argument("--runs-dir", action="append", default=[], metavar="DIR",
                    help="folder holding the map's training runs (default: beside the live runs; repeatable)")
     p.add_argument("--config", default=None, help="overrides of mapping.update.default_config (JSON)")
+    p.add_argument("--preset", choices=preset_names(), default=None, help="settings preset under --config")
     p.add_argument("--allow-older-generation", action="store_true",
                    help="accept localisations made against an older generation of this map (never another map's)")
     p.set_defaults(_run=run)
@@ -23,6 +26,7 @@ def run(args) -> int:
     from scenesig.localiser.outputs import read_localisation
     from scenesig.mapping.build import load_config
     from scenesig.mapping.update import update_map
+    from scenesig.presets import apply_preset
 
     from pathlib import Path
 
@@ -30,7 +34,7 @@ def run(args) -> int:
 
     locs = [read_localisation(folder, args.runs_dir) for folder in args.localisations]
     try:
-        summary = update_map(args.map, locs, out=args.out, runs_dirs=args.runs_dir, config=load_config(args.config),
+        summary = update_map(args.map, locs, out=args.out, runs_dirs=args.runs_dir, config=apply_preset("update", load_config(args.config), args.preset),
                              allow_older_generation=args.allow_older_generation)
     except OSError as exc:      # a read-only map folder, a full disk: say where, no traceback
         where = Path(exc.filename) if exc.filename else Path(args.out or args.map)

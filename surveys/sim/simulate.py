@@ -75,8 +75,20 @@ def simulate_run(preset: str, seed: int, index: int, condition: str, out_dir, ca
     """Simulate and write run number ``index`` with ``condition``; returns a small summary dict."""
     import cv2
 
-    if single_thread:
-        cv2.setNumThreads(1)
+    if not single_thread:
+        return _simulate_run(preset, seed, index, condition, out_dir, camera_hz, odometry_hz, ins_hz, gps_hz,
+                             jpeg_quality, overwrite, progress, start_m)
+    saved = cv2.getNumThreads()       # OpenCV on one thread for this call only (a pooled worker), then restored
+    cv2.setNumThreads(1)
+    try:
+        return _simulate_run(preset, seed, index, condition, out_dir, camera_hz, odometry_hz, ins_hz, gps_hz,
+                             jpeg_quality, overwrite, progress, start_m)
+    finally:
+        cv2.setNumThreads(saved)
+
+
+def _simulate_run(preset, seed, index, condition, out_dir, camera_hz, odometry_hz, ins_hz, gps_hz, jpeg_quality,
+                  overwrite, progress, start_m) -> dict:
     t_start = time.perf_counter()
     world = _world(preset, seed)
     name = run_names([condition] * (index + 1))[index]

@@ -1,0 +1,225 @@
+"""The front door: build a map, localise a run, compare methods -- in three calls, results in memory.
+
+::
+
+    import scenesig
+
+    summary = scenesig.build_map(["world/run00_sunny", "world/run01_night"], "world/run00_sunny", "maps/demo")
+    loc = scenesig.localise("maps/demo", "world/run05_fog")           # nothing written
+    loc.times, loc.poses            # (N,), (N, 4, 4): NaN before a first fix (without INS/GPS)
+    loc.frames["lateral_error"]     # the per-frame table (frames.csv's columns)
+    loc.metrics()["lateral_error_m"]["median"]      # error keys only where the run has truth
+    loc.write("out/fog")            # exactly the files ``scenesig localise`` writes
+    rows = scenesig.compare("maps/demo", ["world/run05_fog"], methods=["signatures", "orb"])
+
+The command line calls these (``scenesig build-map``, ``scenesig localise``, ``scenesig compare``), so a
+result made here and one made there are the same bytes.  ``preset`` picks a settings preset
+(:mod:`scenesig.presets`: ``default``, ``paper``); ``config`` overrides it.  See ``docs/api.md``.
+"""
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+import numpy as np
+
+from scenesig.presets import apply_preset
+
+__all__ = ["build_map", "localise", "compare", "Localisation"]
+
+
+def _read(run):
+    from scenesig.surveys.run import SurveyRun, read_run
+
+    # an absolute folder: worker processes (joblib's, reused across calls) may not share our working folder
+    return run if isinstance(run, SurveyRun) else read_run(Path(run).resolve())
+
+
+def build_map(runs, reference, out, *, jobs: int = 1, scheduler=None, config: dict | None = None,
+              preset: str | None = None, progress: bool = True, skip_corrupt: bool = False) -> dict:
+    """Build (or resume) a map; returns the build summary (``build_summary.json``'s content).
+
+    Parameters
+    ----------
+    runs : training runs -- folders or :class:`scenesig.surveys.run.SurveyRun` objects already read.
+    reference : the reference run (a folder, one of ``runs`` or not, or a run object): places are
+        defined along it.
+    out : the map folder.
+    jobs : places built in parallel (joblib processes); ``scheduler``: a Dask scheduler address or
+        ``distributed.Client`` instead (needs the ``distributed`` extra).
+    config : build overrides (:data:`scenesig.mapping.build.default_config`), on top of ``preset``.
+    preset : a settings preset (:data:`scenesig.presets.PRESETS`), default the project's defaults.
+    """
+    from scenesig.mapping.build import build_map as _build_map
+    from scenesig.surveys.run import SurveyRun, read_run
+
+    if isinstance(runs, (str, Path, SurveyRun)):
+        runs = [runs]
+    loaded = [_read(r) for r in runs]
+    if isinstance(reference, SurveyRun):
+        ref = reference
+    else:
+        path = Path(reference).resolve()
+        ref = next((r for r in loaded if r.root is not None and Path(r.root).resolve() == path), None)
+        ref = ref or read_run(path)
+    cfg = apply_preset("build", config, preset)
+    return _build_map(loaded, ref, out, jobs=jobs, scheduler=scheduler, config=cfg, progress=progress,
+                      skip_corrupt=skip_corrupt)
+
+
+class Localisation:
+    """One run localised against a map, in memory (what :func:`localise` returns).
+
+    Attributes
+    ----------
+    result : the replay's :class:`scenesig.localiser.replay.ReplayResult` (every per-frame record).
+    store : the map (:class:`scenesig.mapping.store.MapStore`).
+    """
+
+    def __init__(self, result, store, max_path_distance_m: float | None = None):
+        self.result = result
+        self.store = store
+        self.max_path_distance_m = max_path_distance_m
+        self._evaluated = None
+
+    def __repr__(self) -> str:
+        r = self.result
+        return (f"Localisation(run={r.run.name!r}, method={r.method!r}, frames={len(r.times)}, "
+                f"localised={int(np.sum(r.localised))}, failures={r.failures})")
+
+    @property
+    def method(self) -> str:
+        return self.result.method
+
+    @property
+    def run(self) -> str:
+        return self.result.run.name
+
+    @property
+    def times(self) -> np.ndarray:
+        """(N,) frame times."""
+        return np.asarray(self.result.times, float)
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) estimates ``T_world_vehicle`` at the frame times; NaN where the localiser had no world
+        pose (before its first fix when localising without INS/GPS)."""
+        P = np.array(self.result.poses, float)
+        P[~np.asarray(self.result.valid, bool)] = np.nan
+        return P
+
+    def _evaluation(self):
+        if self._evaluated is None:
+            from scenesig.localiser.outputs import compute_metrics
+
+            self._evaluated = compute_metrics(self.result, self.store, self.max_path_distance_m)
+        return self._evaluated
+
+    def metrics(self) -> dict:
+        """``metrics.json``'s content: what the localiser knows, and the errors against truth where the run
+        has truth (``lateral_error_m``, ``heading_error_deg``, ...; absent otherwise)."""
+        import copy
+
+        return copy.deepcopy(self._evaluation()[0])
+
+    @property
+    def frames(self) -> dict:
+        """The per-frame table: ``{column: (N,) float array}`` with ``frames.csv``'s columns
+        (:data:`scenesig.localiser.outputs.FRAMES_COLUMNS`) and values -- errors NaN without truth."""
+        from scenesig.localiser.outputs import frames_csv_text
+        from scenesig.localiser.uncertainty import bounds_from_result
+
+        text = frames_csv_text(self.result, self._evaluation()[1], bounds_from_result(self.result, self.store))
+        rows = list(csv.reader(io.StringIO(text)))
+        header, body = rows[0], [r for r in rows[1:] if r]
+        return {h: np.array([float(r[k]) for r in body], float) for k, h in enumerate(header)}
+
+    def write(self, out, figure: bool = True) -> dict:
+        """Write exactly the files ``scenesig localise`` writes (``trajectory.tum``, ``covariances.csv``,
+        ``frames.csv``, ``metrics.json``, and ``trajectory.png`` with ``figure``) into ``out``; returns the
+        metrics."""
+        from scenesig.localiser.outputs import write_outputs
+
+        return write_outputs(self.result, self.store, out, self.max_path_distance_m, figure=figure)
+
+
+def localise(map, run, *, method: str = "signatures", oracle: str = "ins", every: int | None = None,
+             config: dict | None = None, preset: str | None = None, realtime: bool = False, speed: float = 1.0,
+             progress: bool = False) -> Localisation:
+    """Localise one run against a map, in memory (write the CLI's files with :meth:`Localisation.write`).
+
+    Parameters
+    ----------
+    map : the map folder, or a :class:`scenesig.mapping.store.MapStore` already open.
+    run : the live run: a folder, or a :class:`scenesig.surveys.run.SurveyRun` already read.
+    method : ``signatures`` or a point-feature baseline (``orb``, ``sift``, ``orb-all``, ``sift-all``).
+    oracle : ``ins`` (start and reset from the run's INS/GPS: the paper's protocol) or ``none``.
+    every : the detector on every N-th frame (default :data:`scenesig.localiser.replay.DEFAULT_EVERY`, 4).
+    config : replay overrides (:data:`scenesig.localiser.replay.default_config`: ``localiser``, ``method``, ...), on
+        top of ``preset``.
+    realtime, speed : threads and one-slot mailboxes paced by the data clock instead (not repeatable).
+    """
+    from scenesig.localiser.replay import DEFAULT_EVERY, default_config, localise_run
+    from scenesig.surveys.settings import merge_settings
+
+    cfg = apply_preset("localise", config, preset)
+    result, store = localise_run(map, run, method, every=DEFAULT_EVERY if every is None else int(every),
+                                 realtime=realtime, speed=speed, config=cfg, progress=progress, oracle=oracle)
+    mpd = merge_settings(default_config, cfg, "replay", open=("localiser", "method", "relocalise"))
+    return Localisation(result, store, mpd["max_path_distance_m"])
+
+
+def _metrics_of(map_root, run, method, oracle, every, config, preset) -> dict:
+    return localise(map_root, run, method=method, oracle=oracle, every=every, config=config,
+                    preset=preset).metrics()
+
+
+def compare(map, runs, *, methods, oracle: str = "ins", jobs: int = 1, scheduler=None, every: int | None = None,
+            config: dict | None = None, preset: str | None = None) -> list[dict]:
+    """Localise every run with every method; one row per run and method (in that order): a dict of the
+    metrics (:meth:`Localisation.metrics`) whose first keys are ``run`` and ``method``.
+
+    ``jobs`` localisations run in parallel (joblib processes), or on a Dask cluster with ``scheduler``
+    (an address or a ``distributed.Client``; needs the ``distributed`` extra).  Nothing is written.
+    """
+    from scenesig.mapping.store import MapStore
+
+    if isinstance(runs, (str, Path)) or not hasattr(runs, "__iter__"):
+        runs = [runs]
+    methods = [methods] if isinstance(methods, str) else list(methods)
+    if not methods:
+        raise ValueError("compare needs at least one method")
+    runs = list(runs)
+    map_arg = map
+    if (jobs > 1 or scheduler is not None) and isinstance(map, MapStore):
+        map_arg = map.root          # workers open the map themselves
+    tasks = [(r, m) for r in runs for m in methods]
+    if scheduler is not None:
+        from scenesig.surveys.extras import require
+
+        require("distributed", "distributed", "compare(scheduler=...)")
+        from distributed import Client
+
+        client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+        try:
+            futs = [client.submit(_metrics_of, map_arg, r, m, oracle, every, config, preset, pure=False)
+                    for r, m in tasks]
+            results = client.gather(futs)
+        finally:
+            if not isinstance(scheduler, Client):
+                client.close()
+    elif jobs > 1:
+        from joblib import Parallel, delayed
+
+        results = Parallel(n_jobs=jobs, backend="loky")(
+            delayed(_metrics_of)(map_arg, r, m, oracle, every, config, preset) for r, m in tasks)
+    else:
+        store = map if isinstance(map, MapStore) else MapStore.open(map)     # one open map, its cache shared
+        results = [_metrics_of(store, r, m, oracle, every, config, preset) for r, m in tasks]
+    rows = []
+    for metrics in results:
+        row = {"run": metrics["run"], "method": metrics["method"]}
+        row.update({k: v for k, v in metrics.items() if k not in row})
+        rows.append(row)
+    return rows

@@ -1,0 +1,303 @@
+"""Every benchmark of ``scenesig bench`` runs, on tiny inputs, in the default suite.
+
+One test per entry of :data:`scenesig.commands.bench.BENCHMARKS` (a benchmark added without a smoke test
+here fails :func:`test_every_benchmark_has_a_smoke_test`).  Each runs the benchmark's ``main`` (or, where
+``main`` has no switch small enough, its run function with a cut-down configuration), and checks that it
+returns 0 and prints or writes the JSON of what it measured.  The inputs: the tiny simulated world of
+``tests/build_world.py`` (three runs and its map), a few frames copied from ``../shared/data`` into a
+temporary folder (those tests skip without the shared data), synthetic problems.  Figures are not
+checked here -- only that nothing is broken.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from build_world import CONFIG, SHAPES, tiny_map, tiny_runs
+from conftest import SHARED_DATA
+
+from scenesig.commands.bench import BENCHMARKS
+
+#: a cut-down candidate template (the tiny world's) for the benchmarks that mine banks
+TINY_MINING = {"shapes": SHAPES, "n_partitions": 2}
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    base = tmp_path_factory.getbasetemp()
+    runs = tiny_runs(base)
+    return runs, tiny_map(base)
+
+
+def _shared(*parts) -> Path:
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"real data not found at {path} (../shared/data beside the project)")
+    return path
+
+
+def _last_json(text: str):
+    """The last JSON document printed (benchmarks print a table or progress first, some)."""
+    text = text.strip()
+    for start in [i for i, c in enumerate(text) if c in "{["][::-1]:
+        try:
+            return json.loads(text[start:])
+        except json.JSONDecodeError:
+            continue
+    raise AssertionError(f"no JSON in the output: {text[-500:]!r}")
+
+
+def _run(name, argv, capsys, json_path: Path | None = None):
+    import importlib
+
+    module = importlib.import_module(f"scenesig.benchmarks.{BENCHMARKS[name][0]}")
+    assert int(module.main([str(a) for a in argv]) or 0) == 0
+    out = capsys.readouterr().out
+    doc = json.loads(Path(json_path).read_text()) if json_path is not None else _last_json(out)
+    assert doc, f"{name}: empty JSON"
+    return doc
+
+
+def _frames(run, k: int, every: int = 1) -> list[Path]:
+    return [run.root / f for f in run.frame_files[::every][:k]]
+
+
+# ------------------------------------------------------------------------------- synthetic inputs
+def test_absolute_pose(capsys):
+    _run("absolute-pose", ["--matches", "40", "--repeats", "2"], capsys)
+
+
+def test_hog(capsys):
+    _run("hog", ["--levels", "2"], capsys)
+
+
+def test_posegraph(capsys):
+    _run("posegraph", ["--seconds", "3"], capsys)
+
+
+def test_refine(capsys):
+    _run("refine", ["--landmarks", "10", "--frames", "5", "--random", "2"], capsys)
+
+
+def test_solver(capsys):
+    _run("solver", ["--detections", "10", "--repeats", "2"], capsys)
+
+
+def test_strict_decode(capsys):
+    _run("strict_decode", ["--frames", "2", "--repeats", "1", "--trials", "2"], capsys)
+
+
+def test_render(capsys):
+    _run("render", ["--preset", "tiny", "--frames", "2", "--conditions", "sunny"], capsys)
+
+
+def test_realism(tmp_path, capsys):
+    _run("realism", ["--preset", "tiny", "--places", "2", "--json", tmp_path / "r.json"], capsys, tmp_path / "r.json")
+
+
+def test_simcam(tmp_path, capsys):
+    _run("simcam", [tmp_path / "cams", "--places", "1", "--json", tmp_path / "s.json"], capsys, tmp_path / "s.json")
+
+
+def test_speed(monkeypatch, capsys):
+    from scenesig.benchmarks import speed
+    from scenesig.signatures import mining
+
+    real = mining.mine_place
+    monkeypatch.setattr(mining, "mine_place", lambda *a, **k: real(*a, **{**k, "config": TINY_MINING}))
+    monkeypatch.setattr(speed, "place_images", _small(speed.place_images))
+    _run("speed", ["--train-repeats", "1"], capsys)
+
+
+def _small(place_images):
+    """The speed benchmark's place images, six of them (its mining is cut down separately)."""
+    return lambda n=31, seed=0: place_images(6, seed)
+
+
+# ------------------------------------------------------------------------- the tiny world and its map
+def test_detector(world, capsys):
+    runs, root = world
+    _run("detector", [root, runs[2].root, "--frames", "2"], capsys)
+
+
+def test_pointmap(world, capsys):
+    runs, _ = world
+    _run("pointmap", [runs[0].root, "--frame", "4", "--window-m", "3"], capsys)
+
+
+def test_mining(world, capsys, monkeypatch, tmp_path):
+    from scenesig.signatures import mining
+
+    runs, _ = world
+    real = mining.mine_place
+    monkeypatch.setattr(mining, "mine_place", lambda *a, **k: real(*a, **{**k, "config": TINY_MINING}))
+    images = [p for r in runs for p in _frames(r, 2, every=3)]
+    _run("mining", [*images, "--out", tmp_path / "bank.npz"], capsys)
+    assert (tmp_path / "bank.npz").is_file()
+
+
+def test_profile_mining(world, capsys):
+    runs, _ = world
+    images = [p for r in runs for p in _frames(r, 2, every=3)]
+    _run("profile_mining", ["--images", *images, "--shapes", "4"], capsys)
+
+
+def test_profile_localise(world, tmp_path, capsys):
+    runs, root = world
+    _run("profile_localise", [root, runs[2].root, "--every", "8", "--json", tmp_path / "p.json"], capsys,
+         tmp_path / "p.json")
+
+
+def test_relocalise(world, tmp_path, capsys):
+    runs, root = world
+    _run("relocalise", [root, runs[2].root, "--places", "4,8", "--frames", "2", "--json", tmp_path / "r.json"],
+         capsys, tmp_path / "r.json")
+
+
+def test_uncertainty(world, tmp_path, capsys):
+    from scenesig.localiser.replay import localise
+
+    runs, root = world
+    localise(root, runs[2].root, tmp_path / "loc", every=8, progress=False, figure=False)
+    _run("uncertainty", [tmp_path / "loc", "--factors", "1,2"], capsys)
+
+
+def test_rosbag_import(world, capsys):
+    pytest.importorskip("rosbags")
+    runs, _ = world
+    _run("rosbag-import", [runs[0].root, "--frames", "4", "--formats", "mcap", "--images", "raw", "--repeats", "1"],
+         capsys)
+
+
+def test_rosbag_roundtrip(world, tmp_path, monkeypatch, capsys):
+    """The round trip on the tiny world (its three runs already simulated, not four)."""
+    pytest.importorskip("rosbags")
+    from scenesig.benchmarks import rosbag_roundtrip
+
+    runs, _ = world
+    (tmp_path / "world").mkdir()
+    for r in runs:
+        shutil.copytree(r.root, tmp_path / "world" / r.root.name)
+    # its live run is a fog run: the night run, renamed, stands in for it
+    night = next(r for r in runs if r.conditions[0] == "night")
+    fog = tmp_path / "world" / "run03_fog"
+    shutil.copytree(night.root, fog)
+    toml = (fog / "run.toml").read_text()
+    (fog / "run.toml").write_text(toml.replace(f'name = "{night.name}"', 'name = "run03_fog"')
+                                  .replace('conditions = ["night"]', 'conditions = ["fog"]'))
+    (tmp_path / "world" / "simulate_summary.json").write_text("{}")
+    monkeypatch.setattr(rosbag_roundtrip, "CONFIG", {**CONFIG, "points": {**CONFIG["points"], "max_points": 50}})
+    doc = _run("rosbag-roundtrip", ["--work", tmp_path, "--json", tmp_path / "rt.json"], capsys, tmp_path / "rt.json")
+    assert doc
+
+
+def test_demo_localise(world, tmp_path, capsys):
+    """The demo's localisation stage on a demo-shaped folder made of the tiny world (one live run, the
+    cheapest entry)."""
+    from scenesig.demo import default_config
+
+    runs, root = world
+    demo = tmp_path / "demo"
+    (demo / "world").mkdir(parents=True)
+    for r in runs:
+        (demo / "world" / r.root.name).symlink_to(r.root)
+    (demo / "map").symlink_to(root)
+    (demo / "world" / "simulate_summary.json").write_text(json.dumps(
+        {"runs": [{"name": r.name} for r in runs]}))
+    cfg = {"training": [r.conditions[0] for r in runs], "reference": runs[0].conditions[0],
+           "methods": ["signatures"], "no_oracle_methods": [], "camera_hz": 4.0, "detector_hz": 1.0}
+    assert set(cfg) <= set(default_config)
+    (demo / "summary.json").write_text(json.dumps({"config": cfg, "runs": [{"run": runs[2].name}]}))
+    doc = _run("demo_localise", [demo, "--out", tmp_path / "out", "--jobs", "1", "--json", tmp_path / "d.json"],
+               capsys, tmp_path / "d.json")
+    assert doc["live_runs"] == [runs[2].name]
+
+
+# -------------------------------------------------------------------------- a few real frames
+def test_kitti_import(tmp_path, capsys):
+    drive = _shared("kitti", "2011_09_26_snippet")
+    _run("kitti-import", [drive, "--repeats", "1", "--json", tmp_path / "k.json"], capsys, tmp_path / "k.json")
+
+
+def test_kitti_drive(tmp_path, monkeypatch, capsys):
+    """The snippet end to end, its map built with the tiny world's cut-down settings, ORB only."""
+    drive = _shared("kitti", "2011_09_26_snippet")
+    from scenesig.mapping import build
+
+    real = build.build_map
+    tiny = {**CONFIG, "places": {"spacing_m": 10.0}, "points": {**CONFIG["points"], "max_points": 50}}
+    monkeypatch.setattr(build, "build_map", lambda *a, **k: real(*a, **{**k, "config": tiny, "progress": False}))
+    doc = _run("kitti-drive", [drive, "--work", tmp_path / "w", "--methods", "orb", "--every", "8",
+                               "--json", tmp_path / "kd.json"], capsys, tmp_path / "kd.json")
+    assert "orb" in doc["replays"]["cam3"]
+
+
+def _tiny_grief_season(dst: Path, frames: int = 6) -> Path:
+    src = _shared("grief", "season")
+    for s in ("season_00", "season_01"):
+        (dst / s).mkdir(parents=True)
+        for f in sorted((src / s).glob("*.jpg"))[:frames]:
+            shutil.copy(f, dst / s / f.name)
+    lines = (src / "season_01" / "displacements.txt").read_text().splitlines()[:frames]
+    (dst / "season_01" / "displacements.txt").write_text("\n".join(lines) + "\n")
+    return dst
+
+
+def test_heading(tmp_path, capsys):
+    data = _shared("grief", "stromovka")
+    _run("heading", [data, "--methods", "orb", "--max-pairs", "2", "--json", tmp_path / "h.json"], capsys,
+         tmp_path / "h.json")
+
+
+def test_places(tmp_path, capsys):
+    """``bench places`` on six GRIEF season frames: its arguments through ``main`` (the cheap methods), and
+    the signatures method (which once failed with an AttributeError) with a cut-down template."""
+    from scenesig.benchmarks import places
+
+    data = _tiny_grief_season(tmp_path / "season")
+    _run("places", [data, "--methods", "hog,vlad", "--json", tmp_path / "p.json", "--jobs", "1"], capsys,
+         tmp_path / "p.json")
+    doc = places.run_benchmark(data, methods=["signatures"], json_path=tmp_path / "s.json", jobs=1, progress=False,
+                               config={"heading": {"mining": TINY_MINING, "augment_copies": 2}, "shortlist": 2})
+    assert json.loads((tmp_path / "s.json").read_text()) and doc
+
+
+def _tiny_webcam(dst: Path, per_scene: int = 8) -> Path:
+    src = _shared("webcam")
+    for scene in sorted(p for p in src.iterdir() if p.is_dir())[:2]:
+        (dst / scene.name).mkdir(parents=True)
+        for f in sorted(scene.glob("*.jpg"))[:per_scene]:
+            shutil.copy(f, dst / scene.name / f.name)
+    return dst
+
+
+def test_webcam(tmp_path, capsys):
+    data = _tiny_webcam(tmp_path / "webcam")
+    _run("webcam", [data, "--methods", "orb", "--json", tmp_path / "w.json", "--exclude"], capsys, tmp_path / "w.json")
+
+
+def test_webcam_speed(tmp_path, monkeypatch, capsys):
+    from scenesig.benchmarks import webcam_speed
+
+    data = _tiny_webcam(tmp_path / "webcam", per_scene=8)
+    monkeypatch.setattr(webcam_speed, "N_IMAGES", 3)
+    (tmp_path / "cfg.json").write_text(json.dumps({"signatures": {"mining": TINY_MINING}}))
+    _run("webcam-speed", [data, "--repeat", "1", "--json", tmp_path / "ws.json", "--config", tmp_path / "cfg.json"],
+         capsys, tmp_path / "ws.json")
+
+
+def test_aerial(tmp_path, capsys):
+    tiles = _shared("wildnav")
+    _run("aerial", [tiles, "--methods", "orb", "--trials", "2", "--cache", tmp_path / "banks", "--no-progress",
+                    "--json", tmp_path / "a.json"], capsys, tmp_path / "a.json")
+
+
+def test_every_benchmark_has_a_smoke_test():
+    tested = {n[len("test_"):].replace("_", "-") for n in globals() if n.startswith("test_")}
+    missing = [name for name in BENCHMARKS if name.replace("_", "-") not in tested]
+    assert not missing, f"benchmarks without a smoke test in tests/test_benchmarks.py: {missing}"
+    assert np.isfinite(len(BENCHMARKS))
