@@ -70,9 +70,10 @@ def test_wheel_holds_only_scenesig_and_runs(tmp_path):
     proc = _run([str(py), "-m", "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)], cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     exe = str(env_dir / "bin" / "scenesig")
-    for args in ([exe, "--help"], [exe, "bench", "--help"],
-                 [str(py), "-c", "import scenesig.mapping.build as b, scenesig.signatures.whiten as w; "
-                                 "print(b.__file__); w.load_background()"]):
+    api = ("import scenesig, scenesig.mapping.build as b, scenesig.signatures.whiten as w; "
+           "assert all(callable(f) for f in (scenesig.build_map, scenesig.localise, scenesig.compare)); "
+           "w.load_background(); print(b.__file__)")
+    for args in ([exe, "--help"], [exe, "bench", "--help"], [exe, "config", "show"], [str(py), "-c", api]):
         proc = _run(args, cwd=tmp_path)
         assert proc.returncode == 0, (args, proc.stderr[-2000:])
     assert str(env_dir) in proc.stdout, proc.stdout   # the wheel's copy, not the checkout's
