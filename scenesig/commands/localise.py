@@ -32,6 +32,9 @@ def register(groups):
     p.add_argument("--oracle", choices=("ins", "none"), default="ins",
                    help="ins (default, the paper's protocol): start and reset from the run's INS/GPS; none: no "
                         "INS/GPS -- global localisation from the map at start-up, relocalisation when lost")
+    p.add_argument("--no-camera-check", action="store_true",
+                   help="skip checking the run's calibration against its own images and odometry (the "
+                        "comparison with the map's camera is always made)")
     p.set_defaults(_run=run, _parser=p)
 
 
@@ -44,7 +47,7 @@ def run(args) -> int:
         args._parser.error(str(exc))
     metrics = localise(args.map, args.run, args.out, method=args.method, every=args.every or 4,
                        realtime=bool(args.realtime), speed=float(args.speed or 1.0), oracle=args.oracle,
-                       config={"method": opts} if opts else None)
+                       config={"method": opts} if opts else None, camera_check=not args.no_camera_check)
     keys = ("method", "run", "oracle", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
             "blind_fraction_over_20m", "first_fix_m", "relocalisations", "false_fixes", "lateral_bound_95_m_median",
             "bound_coverage_95", "truth_source", "realtime_factor", "frames_corrupt", "frames_dropped")
