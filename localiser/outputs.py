@@ -39,7 +39,7 @@ __all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "FALSE_FIX_M", "reference_path", "ma
 #: Columns of ``frames.csv`` (the errors are NaN without truth; the bounds NaN without a pose).
 FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
                   "distance_since_localisation", "lateral_bound_95_m", "longitudinal_bound_95_m",
-                  "heading_bound_95_deg")
+                  "heading_bound_95_deg", "integrity_alert")
 #: the columns an output folder written before the bounds existed has (still read)
 _FRAMES_REQUIRED = FRAMES_COLUMNS[:8]
 #: ``metrics.json`` entries that measure the machine rather than the result (they differ between runs).
@@ -225,6 +225,13 @@ def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> d
     for k in ("frames_dropped", "frames_detected", "odometry_queue_max", "odometry_coalesced", "lag_max_s"):
         if k in tm:
             metrics[k] = tm[k]
+    flags = getattr(result, "integrity_alert", None)
+    metrics["integrity_alerts"] = len(getattr(result, "integrity_alerts", None) or [])
+    metrics["integrity_alert_frames"] = int(np.sum(flags)) if flags is not None else 0
+    if getattr(result, "integrity_alerts", None):
+        metrics["integrity_alert_list"] = result.integrity_alerts[:20]   # localiser.integrity.Alert
+    if getattr(result, "camera_check", None) is not None:
+        metrics["camera_check"] = result.camera_check     # mapping.camera_check.assess, before the replay
     return metrics
 
 
@@ -391,14 +398,19 @@ def write_frames_csv(path: Path, result: ReplayResult, ev, bounds: dict | None =
 def frames_csv_text(result: ReplayResult, ev, bounds: dict | None = None) -> str:
     """The text of ``frames.csv`` (see :func:`write_frames_csv`)."""
     n = len(result.times)
-    b = bounds or {}
+    b = dict(bounds or {})
+    flag = getattr(result, "integrity_alert", None)
+    if flag is None:
+        flag = b.get("integrity_alert")
+    b["integrity_alert"] = np.zeros(n) if flag is None else np.nan_to_num(np.asarray(flag, float))
     cols = [b.get(c, np.full(n, np.nan)) for c in FRAMES_COLUMNS[8:]]
     lines = [",".join(FRAMES_COLUMNS)]
     for i, t in enumerate(result.times):
         lines.append(",".join([f"{t:.6f}", str(int(result.places[i])), str(int(result.detections[i])),
                                str(int(result.inliers[i])), str(int(result.localised[i])),
                                _fmt(ev.lateral_m[i]), _fmt(ev.heading_deg[i]),
-                               _fmt(result.distance_since_localisation[i]), *(_fmt(c[i]) for c in cols)]))
+                               _fmt(result.distance_since_localisation[i]), *(_fmt(c[i]) for c in cols[:-1]),
+                               str(int(cols[-1][i]))]))
     return "\n".join(lines) + "\n"
 
 
@@ -477,16 +489,24 @@ def read_output_files(folder):
     tpath = folder / "trajectory.tum"
     if not tpath.is_file():
         raise DataError(tpath, "missing")
-    times, poses = read_tum(tpath)
+    if metrics.get("oracle") == "none" and not any(
+            ln.strip() and not ln.lstrip().startswith("#") for ln in tpath.read_text(encoding="utf-8").splitlines()):
+        times, poses = np.zeros(0), np.zeros((0, 4, 4))     # never localised: no pose at all
+    else:
+        times, poses = read_tum(tpath)
     n = len(frames["time"])
     if len(times) != n and metrics.get("oracle") != "none":
         raise DataError(tpath, f"{len(times)} poses but frames.csv has {n} frames")
     if len(times) != n:
-        # without INS/GPS there is no pose before the first fix: the trajectory is a tail of the frames
-        if len(times) > n or (len(times) and np.max(np.abs(times - frames["time"][n - len(times):])) > 1e-3):
-            raise DataError(tpath, f"its {len(times)} poses are not the last frames of frames.csv's {n}")
-        poses = np.concatenate([np.full((n - len(times), 4, 4), np.nan), poses.reshape(-1, 4, 4)])
-        times = np.asarray(frames["time"], float)
+        # without INS/GPS there is no pose before the first fix, nor after the integrity monitor dropped
+        # one (localiser.integrity): the trajectory holds the frames that have a pose
+        ft = np.asarray(frames["time"], float)
+        k = np.clip(np.searchsorted(ft, times - 1e-3), 0, max(n - 1, 0))
+        if len(times) > n or (len(times) and (np.max(np.abs(ft[k] - times)) > 1e-3 or np.any(np.diff(k) <= 0))):
+            raise DataError(tpath, f"its {len(times)} poses are not at frames of frames.csv's {n}")
+        full = np.full((n, 4, 4), np.nan)
+        full[k] = poses.reshape(-1, 4, 4)
+        poses, times = full, ft
     if n and np.max(np.abs(times - frames["time"])) > 1e-3:
         raise DataError(tpath, "times differ from frames.csv's")
     return metrics, frames, times, poses
@@ -551,6 +571,8 @@ class _Track:
         self.first_fix_time = metrics.get("first_fix_time")
         self.relocalisations = [tuple(p) for p in metrics.get("relocalisation_times") or []]
         self.bounds = {c: frames.get(c, np.full(n, np.nan)) for c in FRAMES_COLUMNS[8:]}
+        self.integrity_alert = frames.get("integrity_alert", np.zeros(n))
+        self.integrity_alerts = list(metrics.get("integrity_alert_list") or [])
 
 
 def evaluate_folder(folder, truth=None, map_root=None, max_path_distance_m: float | None = None,

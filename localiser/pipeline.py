@@ -272,8 +272,10 @@ class SignatureLocaliser(WeakLocaliser):
         res = solve(obs.uv, obs.R, obs.landmarks, prior.T_place_vehicle, prior.covariance, self.camera,
                     self.T_vehicle_camera, landmark_cov=obs.landmark_cov, config=self.solver_config)
         c = res.constraint(self.store.places[place].T_world_place)
+        # the inliers' squared Mahalanobis residuals: the integrity monitor's residual test
+        r2 = float(np.sum(res.mahalanobis_sq[res.inliers])) if res.n_inliers else float("nan")
         return Measurement(c, n, res.n_inliers, res.reason, obs.ms, res.ms, True,
-                           {"whole_image": obs.whole_image, "searched": obs.searched})
+                           {"whole_image": obs.whole_image, "searched": obs.searched, "residual_chi2": r2})
 
     def close(self):
         self.detector.close()
@@ -419,6 +421,8 @@ class Localiser:
         since; the localiser is localised again (and a recovery from lost is counted).
         """
         with self._lock:
+            # what :meth:`discard` restores when the integrity monitor rejects this fix
+            self._before_fix = (self.first_fix_time, len(self.relocalisations), self.lost_time)
             t_now = self._odo_t[-1]
             T_now = np.asarray(T_world_vehicle, float) @ self.odometry_between(t, t_now)
             cov = self._fix_cov if covariance is None else 0.5 * (covariance + covariance.T) + self._floor
@@ -431,6 +435,26 @@ class Localiser:
             elif self.lost_time is not None:
                 self.relocalisations.append((self.lost_time, float(t)))
             self.lost, self.lost_time = False, None
+
+    def discard(self, t: float, undo_fix: bool = False) -> None:
+        """Drop the pose: the integrity monitor (:mod:`scenesig.localiser.integrity`) found that the map does not
+        explain the run.  The localiser has no world pose until the next fix (without an oracle) or
+        resets from the oracle at the failure rule (with one: the graph is kept, the oracle's pose is
+        independent of the map).  ``undo_fix``: the fix that started the graph was never confirmed --
+        it is forgotten (first fix time, relocalisation)."""
+        with self._lock:
+            if self.oracle is not None:
+                return
+            if undo_fix and getattr(self, "_before_fix", None) is not None:
+                self.first_fix_time, n, lost_time = self._before_fix
+                del self.relocalisations[n:]
+                self.lost_time = lost_time if lost_time is not None else float(t)
+            elif self.lost_time is None:
+                self.lost_time = float(t)
+            self._before_fix = None
+            self.graph = PoseGraph(config={**self.config["posegraph"],
+                                           "failure_distance_m": self.config["failure_distance_m"]})
+            self.lost = True
 
     @property
     def distance_since_localisation(self) -> float:

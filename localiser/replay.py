@@ -88,6 +88,7 @@ default_config = {
     "localiser": {},             # overrides of localiser.pipeline.default_config
     "relocalise": {},            # overrides of localiser.relocalise.default_config (oracle "none")
     "method": {},                # method configuration (e.g. {"detector": {...}, "solver": {...}})
+    "integrity": {},             # overrides of localiser.integrity.default_config
 }
 
 #: Where the localiser's first pose and its recovery after a failure come from.
@@ -125,6 +126,10 @@ class ReplayResult:
     covariances: np.ndarray | None = None    # (N,6,6) marginal covariance of each frame's pose (vehicle frame,
                                              # GTSAM order: rotation, translation); NaN without a pose
     settings: dict = field(default_factory=dict)   # every setting of the replay, resolved (resolve_config)
+    camera_check: dict | None = None         # what the camera check found (mapping.camera_check.assess)
+    integrity_alert: np.ndarray | None = None  # (N,) bool: the integrity monitor refused this frame's fix
+    integrity_alerts: list = field(default_factory=list)  # localiser.integrity.Alert dicts
+    integrity_stats: list = field(default_factory=list)   # localiser.integrity.FrameStats of every tracked frame
 
     def __post_init__(self):
         if self.valid is None:
@@ -204,8 +209,10 @@ class _Recorder:
         self.reasons: list = [None] * n
         self.ms_detect: list[float] = []
         self.ms_solve: list[float] = []
+        self.alert = np.zeros(n, dtype=bool)           # the integrity monitor refused the frame's fix
         self.lock = threading.Lock()
         self.corrupt: dict[int, str] = {}   # frame -> why its image was rejected (skipped frames)
+        self.probation_start: int | None = None         # first frame of a global fix awaiting confirmation
 
     def corrupt_frame(self, i: int, exc: CorruptImageError) -> None:
         """A frame whose image failed strict decoding: skipped (odometry goes on), named once."""
@@ -229,6 +236,18 @@ class _Recorder:
             self.distance[i] = loc.distance_since_localisation
             if self.places[i] < 0:
                 self.places[i] = loc.nearest_place(T)
+
+    def discard(self, i0: int, i1: int, mark: bool = True) -> None:
+        """Frames i0..i1 tracked a fix the integrity monitor rejected (``mark``: marked as refused) or
+        never confirmed: no pose, not localised."""
+        with self.lock:
+            sl = slice(i0, i1 + 1)
+            self.poses[sl] = np.nan
+            self.covariances[sl] = np.nan
+            self.valid[sl] = False
+            self.localised[sl] = False
+            if mark:
+                self.alert[sl] |= self.detector_ran[sl]
 
     def measurement(self, i: int, place: int, m: Measurement, accepted: bool, ms_det: float, ms_solve: float) -> None:
         with self.lock:
@@ -285,15 +304,52 @@ class _FramePrefetcher:
         self._pool.shutdown(wait=True)
 
 
-def _search(reloc, run: SurveyRun, i: int, t: float, img, rec: _Recorder, ms_prepare: float) -> None:
+def _search(reloc, run: SurveyRun, i: int, t: float, img, rec: _Recorder, ms_prepare: float, monitor=None) -> None:
     """Global search for frame i (not localised, no oracle): retrieval, verification, sequence check."""
     raw = img if isinstance(img, np.ndarray) else run.image(i, gray=True)
     r = reloc.search(img, t, raw)
-    rec.measurement(i, r.place, r.measurement, r.accepted, ms_prepare + r.ms_retrieval + r.ms_detect, r.ms_solve)
+    accepted = r.accepted
+    if monitor is not None and monitor.searching(t, r.place, reloc.loc.distance_at(t), r.verified):
+        with rec.lock:
+            rec.alert[i] = True
+    if accepted and monitor is not None and monitor.active:
+        # a global fix is tentative until tracked frames confirm it (localiser.integrity)
+        monitor.begin_probation(t)
+        rec.probation_start = i
+        accepted = False
+        r.measurement.reason = "integrity_probation"
+    rec.measurement(i, r.place, r.measurement, accepted, ms_prepare + r.ms_retrieval + r.ms_detect, r.ms_solve)
+
+
+def _decide(loc: Localiser, monitor, rec: _Recorder, i: int, t: float, prior, m: Measurement) -> bool:
+    """The integrity monitor's verdict on a tracked frame's measurement, applied; True if accepted."""
+    if monitor is None or not monitor.active:
+        return loc.add_measurement(t, m)
+    from .integrity import frame_stats
+
+    verdict = monitor.assess(frame_stats(t, prior.place, prior, m))
+    if verdict == "accept":
+        rec.probation_start = None
+        return loc.add_measurement(t, m)
+    if verdict == "tentative":          # probation: tracks the tentative fix, not yet a localisation
+        loc.add_measurement(t, m)
+        if m.constraint is not None:
+            m.reason = "integrity_probation"
+        return False
+    m.reason = "integrity_alert"
+    with rec.lock:
+        rec.alert[i] = True
+    if verdict == "alert" and loc.oracle is None:
+        i0 = rec.probation_start
+        loc.discard(t, undo_fix=i0 is not None)
+        if i0 is not None:
+            rec.discard(i0, i)
+        rec.probation_start = None
+    return False
 
 
 def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t: float, rec: _Recorder,
-                frames: _FramePrefetcher | None = None, reloc=None) -> None:
+                frames: _FramePrefetcher | None = None, reloc=None, monitor=None) -> None:
     """Detector + solver for frame i at time t (deterministic mode: inline); the global search instead
     while a localiser without an oracle is not localised."""
     try:
@@ -305,7 +361,7 @@ def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t
         rec.corrupt_frame(i, exc)
         return
     if reloc is not None and loc.lost:
-        _search(reloc, run, i, t, img, rec, ms_prepare)
+        _search(reloc, run, i, t, img, rec, ms_prepare, monitor)
         return
     prior = loc.prior(t)
     method.prefetch(prior.next_place)
@@ -314,11 +370,11 @@ def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t
     t1 = time.perf_counter()
     m = Measurement.coerce(method.solve(obs, prior.place, prior))
     t2 = time.perf_counter()
-    accepted = loc.add_measurement(t, m)
+    accepted = _decide(loc, monitor, rec, i, t, prior, m)
     rec.measurement(i, prior.place, m, accepted, ms_prepare + 1e3 * (t1 - t0), 1e3 * (t2 - t1))
 
 
-def _deterministic(method, loc, run, rec, every, progress, prefetch=True, reloc=None):
+def _deterministic(method, loc, run, rec, every, progress, prefetch=True, reloc=None, monitor=None):
     from tqdm import tqdm
 
     ft = rec.times
@@ -334,7 +390,7 @@ def _deterministic(method, loc, run, rec, every, progress, prefetch=True, reloc=
     def frame(i):
         t = max(float(ft[i]), t_start)       # frames before the first odometry: at the start pose
         if i % every == 0:
-            _run_method(method, loc, run, i, t, rec, frames, reloc)
+            _run_method(method, loc, run, i, t, rec, frames, reloc, monitor)
         rec.pose(i, loc, t)
         bar.update(1)
 
@@ -354,7 +410,7 @@ def _deterministic(method, loc, run, rec, every, progress, prefetch=True, reloc=
         bar.close()
 
 
-def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=None):
+def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=None, monitor=None):
     from tqdm import tqdm
 
     ft = rec.times
@@ -363,6 +419,7 @@ def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=N
     t_start = float(odo_t[0])
     loc.start(t_start)
     frames_box, solve_box = _Mailbox(), _Mailbox()
+    decide_lock = threading.Lock()      # the integrity monitor's state is shared by both threads
     errors: list[BaseException] = []
 
     def detector():
@@ -376,7 +433,8 @@ def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=N
                     continue
                 if reloc is not None and loc.lost:
                     # not localised: the whole search (retrieval, verification, sequence check) here
-                    _search(reloc, run, i, t, img, rec, 0.0)
+                    with decide_lock:
+                        _search(reloc, run, i, t, img, rec, 0.0, monitor)
                     continue
                 prior = loc.prior(t)
                 method.prefetch(prior.next_place)
@@ -395,7 +453,8 @@ def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=N
                 t0 = time.perf_counter()
                 m = Measurement.coerce(method.solve(obs, prior.place, prior))
                 ms = 1e3 * (time.perf_counter() - t0)
-                accepted = loc.add_measurement(t, m)
+                with decide_lock:
+                    accepted = _decide(loc, monitor, rec, i, t, prior, m)
                 rec.measurement(i, prior.place, m, accepted, ms_det, ms)
         except BaseException as exc:
             errors.append(exc)
@@ -467,13 +526,15 @@ def resolve_config(config: dict | None = None, method: str = "signatures") -> di
     key anywhere is a ``ValueError`` naming it."""
     from .pipeline import default_config as localiser_default
     from .posegraph import default_config as posegraph_default
+    from .integrity import default_config as integrity_default
     from .relocalise import default_config as relocalise_default
 
-    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise", "integrity"))
     loc = merge_settings(localiser_default, cfg["localiser"], "localiser", open=("posegraph",))
     loc["posegraph"] = merge_settings(posegraph_default, loc["posegraph"], "pose-graph")
     cfg["localiser"] = loc
     cfg["relocalise"] = merge_settings(relocalise_default, cfg["relocalise"], "relocalisation")
+    cfg["integrity"] = merge_settings(integrity_default, cfg["integrity"], "integrity")
     cfg["method"] = method_settings(method, cfg["method"])
     return cfg
 
@@ -500,12 +561,13 @@ def method_settings(method: str, config: dict | None = None) -> dict:
 
 def _settings(cfg: dict, every: int | None, realtime: bool, speed: float, oracle: str) -> dict:
     """``metrics.json``'s ``settings``: the replay's, the localiser's, the pose graph's, the
-    relocaliser's (without INS/GPS only) and the method's, each resolved."""
+    relocaliser's (without INS/GPS only), the integrity monitor's and the method's, each resolved."""
     loc = {k: v for k, v in cfg["localiser"].items() if k != "posegraph"}
-    replay_cfg = {k: v for k, v in cfg.items() if k not in ("localiser", "method", "relocalise")}
+    replay_cfg = {k: v for k, v in cfg.items() if k not in ("localiser", "method", "relocalise", "integrity")}
     out = {"replay": {**replay_cfg, "oracle": oracle, "every": every, "realtime": bool(realtime),
                       "speed": float(speed) if realtime else None},
-           "localiser": loc, "posegraph": cfg["localiser"]["posegraph"], "method": cfg["method"]}
+           "localiser": loc, "posegraph": cfg["localiser"]["posegraph"], "method": cfg["method"],
+           "integrity": cfg["integrity"]}
     if oracle == "none":
         out["relocalise"] = cfg["relocalise"]
     return _json_safe(out)
@@ -530,7 +592,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     retrieval : the coarse place retrieval for ``oracle="none"`` (default: the map's descriptors,
         :class:`scenesig.localiser.relocalise.PlaceRetrieval`).
     """
-    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise", "integrity"))
     resolved = resolve_config(config, method if isinstance(method, str) else method.name)
     oracle = oracle or cfg["oracle"]
     if oracle not in ORACLES:
@@ -551,18 +613,26 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
         from .relocalise import Relocaliser
 
         reloc = Relocaliser(store, method, loc, cfg["relocalise"] or None, retrieval=retrieval)
+    from .integrity import IntegrityMonitor
+
+    monitor = IntegrityMonitor(cfg["integrity"] or None, method.name, t0=float(run.odometry_times[0]))
     rec = _Recorder(run)
     extra = {}
     wall0 = time.perf_counter()
     try:
         if realtime:
-            extra = _realtime(method, loc, run, rec, float(speed), progress, int(cfg["odometry_queue"]), reloc)
+            extra = _realtime(method, loc, run, rec, float(speed), progress, int(cfg["odometry_queue"]), reloc,
+                              monitor)
         else:
-            _deterministic(method, loc, run, rec, every, progress, bool(cfg["prefetch"]), reloc)
+            _deterministic(method, loc, run, rec, every, progress, bool(cfg["prefetch"]), reloc, monitor)
     finally:
         if own:
             method.close()
     wall = time.perf_counter() - wall0
+    if monitor.state == "probation" and rec.probation_start is not None:
+        # the run ended before the tracked frames confirmed the last global fix: it was never a localisation
+        loc.discard(float(rec.times[-1]), undo_fix=True)
+        rec.discard(rec.probation_start, len(rec.times) - 1, mark=False)
     resets = np.zeros(len(run), dtype=bool)
     if len(run):
         for tr in loc.reset_times:
@@ -586,7 +656,9 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
                         rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times),
                         dict(sorted(rec.corrupt.items())), timings, _json_safe(method.method_config()),
                         oracle, loc.oracle_reads, rec.valid.copy(), loc.first_fix_time, list(loc.relocalisations),
-                        rec.covariances, _settings(resolved, None if realtime else every, realtime, speed, oracle))
+                        rec.covariances, _settings(resolved, None if realtime else every, realtime, speed, oracle),
+                        camera_check=None, integrity_alert=rec.alert.copy(),
+                        integrity_alerts=[a.as_dict() for a in monitor.alerts], integrity_stats=list(monitor.history))
 
 
 def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
@@ -605,31 +677,50 @@ def _json_safe(obj):
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
+def check_camera(store: MapStore, run: SurveyRun, consistency: bool = True):
+    """The run's camera against the map's and against its own images and odometry
+    (:func:`scenesig.mapping.camera_check.assess`): a :class:`DataError` naming ``run.toml`` when it is clearly
+    incompatible (another image size, a calibration its own turns contradict), a warning on stderr for
+    each difference worth knowing (another camera, another mounting, a doubtful calibration)."""
+    from scenesig.mapping.camera_check import assess, run_toml
+
+    found = assess(run, store, consistency=consistency)
+    for f in found.warnings:
+        log.warning("%s: camera differs from the map %s's -- %s: %s", run_toml(run), store.root, f.what, f.reason)
+    if found.errors:
+        raise DataError(run_toml(run), "camera incompatible with the map " + str(store.root) + ": "
+                        + "; ".join(f"{f.what}: {f.reason}" for f in found.errors))
+    return found
+
+
 def localise(map_root, run_root, out, method: str = "signatures", every: int = DEFAULT_EVERY, realtime: bool = False,
              speed: float = 1.0, config: dict | None = None, progress: bool = True, figure: bool = True,
-             oracle: str | None = None) -> dict:
+             oracle: str | None = None, camera_check: bool = True) -> dict:
     """Open the map and the run, replay, write the outputs; returns ``metrics.json``'s content.
 
     ``map_root`` is the map folder, or a :class:`MapStore` already open (replays of one map in one
     process then share its cache of decoded places).  With ``oracle="none"`` the localiser's run is
     read without ``groundtruth.tum``, ``gps.csv`` and ``truth.tum``; the truth is read for the
-    evaluation after the replay.
+    evaluation after the replay.  Before replaying, the run's camera is checked (:func:`check_camera`;
+    ``camera_check=False`` skips the calibration check against the run's own images and odometry, the
+    comparison with the map's camera is always made): a clearly incompatible one is refused with a
+    :class:`DataError` and nothing is written.
     """
     result, store = localise_run(map_root, run_root, method, every=every, realtime=realtime, speed=speed,
-                                 config=config, progress=progress, oracle=oracle)
-    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
+                                 config=config, progress=progress, oracle=oracle, camera_check=camera_check)
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise", "integrity"))
     return write_outputs(result, store, out, cfg["max_path_distance_m"], figure=figure)
 
 
 def localise_run(map_root, run_root, method: str = "signatures", every: int = DEFAULT_EVERY, realtime: bool = False,
                  speed: float = 1.0, config: dict | None = None, progress: bool = True,
-                 oracle: str | None = None) -> tuple[ReplayResult, MapStore]:
+                 oracle: str | None = None, camera_check: bool = True) -> tuple[ReplayResult, MapStore]:
     """:func:`localise` without writing: ``(result, store)``.  ``run_root`` is a run folder or a
     :class:`SurveyRun` already read (it must then carry its INS/GPS for ``oracle="ins"``)."""
     import dataclasses
 
     store = map_root if isinstance(map_root, MapStore) else MapStore.open(map_root)
-    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise"))
+    cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise", "integrity"))
     oracle = oracle or cfg["oracle"]
     blind = oracle == "none"
     given = isinstance(run_root, SurveyRun)
@@ -642,9 +733,11 @@ def localise_run(map_root, run_root, method: str = "signatures", every: int = DE
         run = read_run(run_root, skip=("groundtruth", "gps", "truth") if blind else ())
     if not blind:
         _oracle(run)          # no INS/GPS: say so before anything else (DataError naming groundtruth.tum)
+    cam = check_camera(store, run, consistency=camera_check)
     _warn_weak_places(store, run)
     result = replay(store, run, method, every=every, realtime=realtime, speed=speed, config=config,
                     progress=progress, oracle=oracle)
+    result.camera_check = cam.as_dict()
     if blind:       # the evaluation's truth, read only now
         truth = run_root if given else read_run(run_root, check_images=False, skip=("groundtruth", "gps"))
         result.run = dataclasses.replace(run, truth_times=truth.truth_times, truth_poses=truth.truth_poses)

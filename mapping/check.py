@@ -20,7 +20,7 @@ from scenesig.surveys.errors import DataError
 
 from .store import JOURNAL, MANIFEST, PLACES_DIR, MapStore, decode_place
 
-__all__ = ["check_map", "check_paths", "is_map"]
+__all__ = ["check_map", "check_paths", "is_map", "camera_problems"]
 
 
 def is_map(folder) -> bool:
@@ -73,6 +73,39 @@ def check_map(root) -> tuple[list[Problem], dict]:
     return problems, stats
 
 
+def camera_problems(runs, maps, images: bool = True) -> list[Problem]:
+    """Each run's camera against each map's (:mod:`scenesig.mapping.camera_check`: size, intrinsics, extrinsic),
+    and -- where images are checked -- each run's calibration against its own images and odometry.
+
+    A run or map that does not open is left to its own check (which reports why).
+    """
+    from scenesig.surveys.run import read_run
+
+    from .camera_check import assess, run_toml
+
+    stores = []
+    for m in maps:
+        try:
+            stores.append(MapStore.open(m))
+        except DataError:
+            pass
+    out: list[Problem] = []
+    for r in runs:
+        try:
+            run = read_run(r, check_images=False, skip=("groundtruth", "gps", "truth"))
+        except DataError:
+            continue
+        where = str(run_toml(run))
+        if images:
+            for f in assess(run, None).findings:
+                out.append(Problem(where, None, f"{f.what}: {f.reason}", f.severity))
+        for store in stores:
+            for f in assess(run, store, consistency=False).findings:
+                out.append(Problem(where, None, f"camera differs from the map {store.root}'s -- {f.what}: {f.reason}",
+                                   f.severity))
+    return out
+
+
 def check_paths(paths, max_gap_s: float | None = None, images: bool = True, jobs: int = 1,
                 progress: bool = False) -> dict:
     """Check survey runs and maps; each path is a run, a map, or a folder holding runs and maps.
@@ -96,6 +129,8 @@ def check_paths(paths, max_gap_s: float | None = None, images: bool = True, jobs
             problems.append(Problem(str(p), None, "not a survey run (run.toml, frames.csv) or a map (manifest.json), "
                                                   "nor a folder holding any" if p.exists() else "not found"))
     checked = []
+    problems += camera_problems([p for k, p in targets if k == "run"], [p for k, p in targets if k == "map"],
+                                images=images)
     for kind, p in targets:
         if kind == "run":
             found, stats = check_run(p, max_gap_s=max_gap_s, images=images, jobs=jobs, progress=progress)

@@ -146,7 +146,7 @@ class Localisation:
 
 def localise(map, run, *, method: str = "signatures", oracle: str = "ins", every: int | None = None,
              config: dict | None = None, preset: str | None = None, realtime: bool = False, speed: float = 1.0,
-             progress: bool = False) -> Localisation:
+             progress: bool = False, camera_check: bool = True) -> Localisation:
     """Localise one run against a map, in memory (write the CLI's files with :meth:`Localisation.write`).
 
     Parameters
@@ -159,14 +159,18 @@ def localise(map, run, *, method: str = "signatures", oracle: str = "ins", every
     config : replay overrides (:data:`scenesig.localiser.replay.default_config`: ``localiser``, ``method``, ...), on
         top of ``preset``.
     realtime, speed : threads and one-slot mailboxes paced by the data clock instead (not repeatable).
+    camera_check : check the run's calibration against its own images and odometry before replaying
+        (the comparison with the map's camera is always made; a clearly incompatible run raises
+        :class:`scenesig.surveys.errors.DataError`).
     """
     from scenesig.localiser.replay import DEFAULT_EVERY, default_config, localise_run
     from scenesig.surveys.settings import merge_settings
 
     cfg = apply_preset("localise", config, preset)
     result, store = localise_run(map, run, method, every=DEFAULT_EVERY if every is None else int(every),
-                                 realtime=realtime, speed=speed, config=cfg, progress=progress, oracle=oracle)
-    mpd = merge_settings(default_config, cfg, "replay", open=("localiser", "method", "relocalise"))
+                                 realtime=realtime, speed=speed, config=cfg, progress=progress, oracle=oracle,
+                                 camera_check=camera_check)
+    mpd = merge_settings(default_config, cfg, "replay", open=("localiser", "method", "relocalise", "integrity"))
     return Localisation(result, store, mpd["max_path_distance_m"])
 
 

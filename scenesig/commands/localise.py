@@ -40,6 +40,9 @@ def register(groups):
                         "relocalise, ...) as JSON text or a .json file")
     p.add_argument("--preset", choices=preset_names(), default=None,
                    help="settings preset under --config (paper: McManus et al. 2015's values where ours differ)")
+    p.add_argument("--no-camera-check", action="store_true",
+                   help="skip checking the run's calibration against its own images and odometry (the "
+                        "comparison with the map's camera is always made)")
     p.set_defaults(_run=run, _parser=p)
 
 
@@ -59,7 +62,7 @@ def run(args) -> int:
         args._parser.error(str(exc))
     loc = localise(args.map, args.run, method=args.method, every=args.every, realtime=bool(args.realtime),
                    speed=float(args.speed or 1.0), oracle=args.oracle, config=config or None, preset=args.preset,
-                   progress=True)
+                   progress=True, camera_check=not args.no_camera_check)
     metrics = loc.write(args.out)
     keys = ("method", "run", "oracle", "lateral_error_m", "heading_error_deg", "localised_fraction", "failures",
             "blind_fraction_over_20m", "first_fix_m", "relocalisations", "false_fixes", "lateral_bound_95_m_median",

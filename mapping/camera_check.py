@@ -1,0 +1,234 @@
+"""Is a run's camera one the map can localise?  ``scenesig check RUN MAP`` and ``scenesig localise``.
+
+Two questions, answered separately:
+
+1. **What differs from the map's camera** (:func:`compare_cameras`) -- image size, focal lengths,
+   principal point, distortion, the extrinsic ``T_vehicle_camera``.  Another size is incompatible (the
+   banks' HOG templates and their windows are laid out on the map's image grid); anything else is
+   listed, but is no reason to refuse: another vehicle's camera has other intrinsics and another
+   mounting, and the localiser projects the map's landmarks through the *run's* camera (McManus et al.
+   2015, eq. 1), so a different camera that is correctly described localises.
+
+2. **Is the run's calibration right** (:func:`rotation_consistency`) -- checked against the run's own
+   images and odometry, so it needs neither the map nor any truth.  How far the camera turns between two
+   frames is known twice: from the odometry, and from the images through the intrinsics (the essential
+   matrix of matched ORB features in normalised coordinates).  The rotation *angle* does not depend on
+   the extrinsic (it is the same rotation seen from another frame), and a focal length ``k`` times the
+   true one makes the images' rotation about ``1/k`` times the odometry's.  The median ratio of the two
+   over the run's turns is 1 for a correct calibration, whatever the camera; a ratio far from 1 means the
+   run's ``run.toml`` describes another camera than the one that took the images, and every pose solved
+   through it would be wrong (with fx, fy halved, a localiser fed this run reported 41 of 54 fixes
+   more than 5 m off, with no warning).
+
+:func:`assess` combines them into :class:`Finding` lines (``error`` -> ``localise`` refuses, exit 2;
+``warning`` -> it warns and goes on).  Thresholds and how they were chosen: ``docs/integrity.md``,
+"Camera compatibility".
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from scenesig.surveys.geometry import Camera, interpolate_poses, invert
+
+__all__ = ["default_config", "Finding", "CameraAssessment", "compare_cameras", "rotation_consistency", "assess"]
+
+default_config = {
+    # Listed as a difference (a warning): focal length or principal point more than this share apart,
+    # the extrinsic more than these apart.  A different camera is legitimate; the listing says what changed.
+    "intrinsics_rel_tol": 0.02,       # of the focal length (fx, fy)
+    "principal_point_tol": 0.01,      # of the image's larger side (cx, cy)
+    "extrinsic_tol_m": 0.05,
+    "extrinsic_tol_deg": 2.0,
+    # Rotation consistency: frame pairs ``pair_dt_s`` apart (twice, four times that where too few turn
+    # enough) whose odometry turns between ``min_turn_deg`` and ``max_turn_deg``; at most ``max_pairs`` of
+    # them, evenly spread; at least ``min_pairs`` with an estimate to judge at all.
+    "pair_dt_s": 0.4,
+    "min_turn_deg": 3.0,
+    "max_turn_deg": 25.0,
+    "max_pairs": 16,
+    "min_pairs": 5,
+    "orb_features": 800,
+    "min_matches": 30,
+    # The images' rotation over the odometry's, median over the pairs: outside [1/refuse, refuse] the
+    # calibration is wrong (error); outside [1/warn, warn] it is suspicious (warning).  Chosen on the
+    # demo world's training runs (docs/integrity.md), never on the runs reported.
+    "warn_ratio": 1.10,
+    "refuse_ratio": 1.25,
+}
+
+
+@dataclass
+class Finding:
+    """One line of the comparison: what, how it differs, and whether it is an ``error`` or a ``warning``."""
+
+    what: str
+    reason: str
+    severity: str = "warning"
+
+    def __str__(self) -> str:
+        return f"{self.severity}: {self.what}: {self.reason}"
+
+
+@dataclass
+class CameraAssessment:
+    """The findings and the rotation-consistency measurement behind them."""
+
+    findings: list = field(default_factory=list)
+    rotation_ratio: float | None = None     # median images' / odometry's rotation (None: not measured)
+    pairs: int = 0                          # frame pairs it was measured on
+
+    @property
+    def errors(self) -> list:
+        return [f for f in self.findings if f.severity == "error"]
+
+    @property
+    def warnings(self) -> list:
+        return [f for f in self.findings if f.severity == "warning"]
+
+    def as_dict(self) -> dict:
+        return {"findings": [asdict(f) for f in self.findings], "rotation_ratio": self.rotation_ratio,
+                "pairs": self.pairs}
+
+
+def _rot_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def compare_cameras(camera: Camera, T_vehicle_camera, map_camera: Camera, map_T_vehicle_camera,
+                    config: dict | None = None) -> list[Finding]:
+    """The differences between a run's camera and a map's: size (error), intrinsics and extrinsic (warnings)."""
+    cfg = {**default_config, **(config or {})}
+    out: list[Finding] = []
+    if (camera.width, camera.height) != (map_camera.width, map_camera.height):
+        out.append(Finding("image size", f"{camera.width}x{camera.height}, the map's is "
+                                         f"{map_camera.width}x{map_camera.height}: the map's signatures are laid out "
+                                         f"on its image grid", "error"))
+    tol = float(cfg["intrinsics_rel_tol"])
+    for name in ("fx", "fy", "cx", "cy"):
+        a, b = float(getattr(camera, name)), float(getattr(map_camera, name))
+        focal = name in ("fx", "fy")
+        limit = tol * max(abs(b), 1e-9) if focal else \
+            cfg["principal_point_tol"] * max(map_camera.width, map_camera.height)
+        if abs(a - b) > limit:
+            out.append(Finding(name, f"{a:g}, the map's is {b:g} ({a / b:.3g}x)" if name in ("fx", "fy") and b
+                               else f"{a:g}, the map's is {b:g}"))
+    da, db = tuple(float(v) for v in camera.distortion), tuple(float(v) for v in map_camera.distortion)
+    if any(da) or any(db):
+        n = max(len(da), len(db))
+        if not np.allclose(np.pad(da, (0, n - len(da))), np.pad(db, (0, n - len(db))), atol=1e-6):
+            out.append(Finding("distortion", f"{list(da)}, the map's is {list(db)}"))
+    D = invert(np.asarray(map_T_vehicle_camera, float)) @ np.asarray(T_vehicle_camera, float)
+    dt, dr = float(np.linalg.norm(D[:3, 3])), _rot_deg(D)
+    if dt > cfg["extrinsic_tol_m"] or dr > cfg["extrinsic_tol_deg"]:
+        out.append(Finding("extrinsic", f"T_vehicle_camera is {dt:.3f} m and {dr:.2f} deg from the map's"))
+    return out
+
+
+def _pairs(run, cfg) -> list[tuple[int, int, float]]:
+    """Frame pairs ``(i, j, odometry rotation deg)`` about ``pair_dt_s`` apart that turn enough."""
+    ft = np.asarray(run.frame_times, float)
+    ot = np.asarray(run.odometry_times, float)
+    if len(ft) < 2 or len(ot) < 2:
+        return []
+    inside = np.flatnonzero((ft >= ot[0]) & (ft <= ot[-1]))
+    if len(inside) < 2:
+        return []
+    P = interpolate_poses(ot, run.odometry_poses, ft[inside]).reshape(-1, 4, 4)
+    cands = []
+    for a in range(len(inside)):
+        b = int(np.searchsorted(ft[inside], ft[inside[a]] + cfg["pair_dt_s"]))
+        if b >= len(inside):
+            break
+        ang = _rot_deg(invert(P[a]) @ P[b])
+        if cfg["min_turn_deg"] <= ang <= cfg["max_turn_deg"]:
+            cands.append((int(inside[a]), int(inside[b]), ang))
+    # non-overlapping pairs, evenly spread over the run
+    picked, last = [], -1
+    for c in cands:
+        if c[0] > last:
+            picked.append(c)
+            last = c[1]
+    k = int(cfg["max_pairs"])
+    if len(picked) > k:
+        picked = [picked[int(round(x))] for x in np.linspace(0, len(picked) - 1, k)]
+    return picked
+
+
+def _visual_rotation_deg(img_a, img_b, camera: Camera, cfg) -> float | None:
+    """The rotation angle between two images through ``camera``'s intrinsics (essential matrix of ORB
+    matches in normalised coordinates), or None when too few features match."""
+    import cv2
+
+    orb = cv2.ORB_create(int(cfg["orb_features"]))
+    ka, da = orb.detectAndCompute(img_a, None)
+    kb, db = orb.detectAndCompute(img_b, None)
+    if da is None or db is None or len(ka) < cfg["min_matches"] or len(kb) < cfg["min_matches"]:
+        return None
+    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(da, db)
+    if len(matches) < cfg["min_matches"]:
+        return None
+    pa = np.float64([ka[m.queryIdx].pt for m in matches]).reshape(-1, 1, 2)
+    pb = np.float64([kb[m.trainIdx].pt for m in matches]).reshape(-1, 1, 2)
+    K = camera.K
+    dist = np.asarray(list(camera.distortion), float) if any(camera.distortion) else None
+    na = cv2.undistortPoints(pa, K, dist).reshape(-1, 2)
+    nb = cv2.undistortPoints(pb, K, dist).reshape(-1, 2)
+    thr = 1.0 / max(camera.fx, camera.fy)          # one pixel, in normalised units
+    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=thr)
+    if E is None or E.shape != (3, 3) or mask is None or int(mask.sum()) < cfg["min_matches"] // 2:
+        return None
+    _, R, _, _ = cv2.recoverPose(E, na, nb, np.eye(3), mask=mask)
+    return _rot_deg(R)
+
+
+def rotation_consistency(run, config: dict | None = None) -> tuple[float | None, int]:
+    """Median ratio of the images' rotation (through the run's intrinsics) to the odometry's, over the
+    run's turns, and the number of frame pairs it rests on (None with fewer than ``min_pairs``)."""
+    cfg = {**default_config, **(config or {})}
+    # a straight road turns little between frames ``pair_dt_s`` apart: look further apart then
+    for k in range(3):
+        pairs = _pairs(run, {**cfg, "pair_dt_s": cfg["pair_dt_s"] * 2 ** k})
+        if len(pairs) >= int(cfg["min_pairs"]):
+            break
+    ratios = []
+    for i, j, ang in pairs:
+        try:
+            vis = _visual_rotation_deg(run.image(i, gray=True), run.image(j, gray=True), run.camera, cfg)
+        except Exception:       # an unreadable frame: the replay names it; here it is one pair less
+            vis = None
+        if vis is not None:
+            ratios.append(vis / ang)
+    if len(ratios) < int(cfg["min_pairs"]):
+        return None, len(ratios)
+    return float(np.median(ratios)), len(ratios)
+
+
+def assess(run, store=None, config: dict | None = None, consistency: bool = True) -> CameraAssessment:
+    """Compare a run's camera with a map's (``store``, if given) and check its calibration against its
+    own images and odometry (``consistency``).  See the module docstring for what is an error."""
+    cfg = {**default_config, **(config or {})}
+    out = CameraAssessment()
+    if store is not None:
+        out.findings += compare_cameras(run.camera, run.T_vehicle_camera, store.camera, store.T_vehicle_camera, cfg)
+    if consistency:
+        ratio, n = rotation_consistency(run, cfg)
+        out.rotation_ratio, out.pairs = ratio, n
+        if ratio is not None:
+            dev = max(ratio, 1.0 / ratio) if ratio > 0 else np.inf
+            msg = (f"turns seen in the images through the intrinsics are {ratio:.2f}x those the odometry measured "
+                   f"(median of {n} turns; 1 for a correct calibration): fx, fy are likely about "
+                   f"{1.0 / ratio:.2f}x the true ones")
+            if dev > cfg["refuse_ratio"]:
+                out.findings.append(Finding("calibration", msg + " -- every pose solved through them would be wrong",
+                                            "error"))
+            elif dev > cfg["warn_ratio"]:
+                out.findings.append(Finding("calibration", msg, "warning"))
+    return out
+
+
+def run_toml(run) -> Path | str:
+    """Where a run's camera is described (for messages)."""
+    return (Path(run.root) / "run.toml") if getattr(run, "root", None) is not None else str(run.name)
