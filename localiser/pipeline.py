@@ -452,8 +452,7 @@ class Localiser:
             elif self.lost_time is None:
                 self.lost_time = float(t)
             self._before_fix = None
-            self.graph = PoseGraph(config={**self.config["posegraph"],
-                                           "failure_distance_m": self.config["failure_distance_m"]})
+            self.graph = PoseGraph(config=self.config["posegraph"] or None)
             self.lost = True
 
     @property

@@ -32,8 +32,10 @@ def register(groups):
     p.set_defaults(_run=run, _parser=p)
 
 
-def print_places(summary: dict, file=sys.stderr) -> None:
-    """Per place: runs, images mined (frames+augmented copies), signatures kept, rejected shapes by reason."""
+def print_places(summary: dict, file=None) -> None:
+    """Per place: runs, images mined (frames+augmented copies), signatures kept, rejected shapes by reason
+    (to ``file``, default the current ``sys.stderr``)."""
+    file = file or sys.stderr
     from scenesig.mapping.refine import REASONS
 
     reasons = ["no_data", "textureless", "not_converged", *REASONS]
