@@ -66,7 +66,9 @@ class SignatureMatcher:
 
     def _key(self, tile: np.ndarray) -> str:
         h = hashlib.sha256(np.ascontiguousarray(tile[::4, ::4]).tobytes())
-        h.update(json.dumps(self.config, sort_keys=True, default=str).encode())
+        # only what decides the bank (detection settings such as min_prob do not re-mine)
+        mine = {k: v for k, v in self.config.items() if k not in ("min_prob", "ransac_px", "min_inliers")}
+        h.update(json.dumps(mine, sort_keys=True, default=str).encode())
         return h.hexdigest()[:20]
 
     def fit(self, tile: np.ndarray) -> "SignatureMatcher":

@@ -227,7 +227,9 @@ def test_benchmark_json_contract_and_determinism(tmp_path):
     assert doc["tiles"] == 2 and doc["trials"] == 2 and doc["success_px"] == 25
     for m in ("mrsmcc", "sism", "orb"):
         assert set(doc["methods"][m]) == {"success_rate", "mean_error_px", "median_error_px",
-                                          "seconds_per_trial"}
+                                          "seconds_per_trial", "per_tile"}
+        pt = doc["methods"][m]["per_tile"]
+        assert sum(v["trials"] for v in pt.values()) == 2 and set(pt) <= {"t0.png", "t1.png"}
     assert doc["methods"]["mrsmcc"]["success_rate"] == 1.0
     assert (tmp_path / "fig" / "aerial_errors.png").is_file()
     assert len((out.parent / "trials.csv").read_text().splitlines()) == 3
@@ -237,6 +239,39 @@ def test_benchmark_json_contract_and_determinism(tmp_path):
         assert a["success_rate"] == b["success_rate"] and a["median_error_px"] == b["median_error_px"]
     with pytest.raises(ValueError, match="unknown method"):
         run_benchmark(root, ["nope"], trials=1, progress=False)
+
+
+def test_benchmark_folds_report_held_out_tiles_only(tmp_path, capsys):
+    """--folds K: tile i is in fold i mod K; settings chosen on the other folds' tiles; every trial
+    of a fold is drawn over its held-out tiles."""
+    from scenesig.benchmarks import aerial as bench
+    from scenesig import cli
+
+    root = _write_tiles(tmp_path / "tiles", n=3)
+    doc = bench.run_benchmark(root, ["sism", "orb"], trials=4, seed=3, json_path=tmp_path / "o" / "a.json",
+                              progress=False, folds=2, search_trials=1)
+    assert [f["test_tiles"] for f in doc["folds"]] == [["t0.png", "t2.png"], ["t1.png"]]
+    assert [f["train_tiles"] for f in doc["folds"]] == [["t1.png"], ["t0.png", "t2.png"]]
+    for f in doc["folds"]:
+        for m in ("sism", "orb"):
+            assert len(f["search"][m]) == len(bench.SEARCH[m])
+            assert f["chosen"][m] in bench.SEARCH[m]
+    rows = (tmp_path / "o" / "trials.csv").read_text().splitlines()[1:]
+    # trials 0 and 2 belong to fold 0 (tiles t0, t2), trials 1 and 3 to fold 1 (tile t1)
+    tile_of = {int(r.split(",")[0]): r.split(",")[1] for r in rows}
+    assert sorted(tile_of) == [0, 1, 2, 3]
+    assert {tile_of[0], tile_of[2]} <= {"t0.png", "t2.png"} and tile_of[1] == tile_of[3] == "t1.png"
+    assert sum(v["trials"] for v in doc["methods"]["orb"]["per_tile"].values()) == 4
+    assert cli.main(["aerial", "bench", str(root), "--folds", "5", "--methods", "sism", "--no-progress"]) == 2
+    assert "--folds must be between 2" in capsys.readouterr().err
+
+
+def test_search_rule_prefers_success_then_speed():
+    from scenesig.benchmarks.aerial import choose
+
+    r = [{"success_rate": 0.9, "seconds_per_trial": 0.1}, {"success_rate": 0.95, "seconds_per_trial": 0.3},
+         {"success_rate": 0.95, "seconds_per_trial": 0.2}]
+    assert choose(r) == 2
 
 
 def test_localise_sequence_writes_track(tmp_path):
