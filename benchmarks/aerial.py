@@ -39,7 +39,7 @@ import numpy as np
 
 from scenesig.surveys.io import atomic_path, atomic_write_text
 
-METHODS = ("mrsmcc", "mrsm", "sism", "sift", "orb", "signatures")
+METHODS = ("mrsmcc", "mrsm", "sism", "sift", "orb", "xfeat", "signatures")
 SUCCESS_PX = 25.0
 
 
@@ -58,6 +58,10 @@ def _setup(method: str, images, landmarks, cache_dir):
         ests = [SISM().fit(im) for im in images]
     elif method in ("sift", "orb"):
         ests = [PointMatcher({"kind": method}).fit(im) for im in images]
+    elif method == "xfeat":
+        from scenesig.benchmarks._models import xfeat_model
+
+        ests = [PointMatcher({"kind": "xfeat", "xfeat": {"model": xfeat_model()}}).fit(im) for im in images]
     elif method == "signatures":
         ests = [SignatureMatcher(cache_dir=cache_dir).fit(im) for im in images]
     else:
@@ -128,12 +132,18 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
                 errors[m].append(err)
                 row[f"{m}_x"], row[f"{m}_y"], row[f"{m}_error_px"] = c[0], c[1], err
             rows.append(row)
+    if "xfeat" in methods:       # which model file ran (its sha256) and its settings
+        from scenesig.signatures.xfeat import get_xfeat
+
+        xfeat_info = get_xfeat(ests["xfeat"][0].config["xfeat"]).describe() if ests["xfeat"] else None
     doc = {"tiles": len(tiles), "trials": int(trials), "success_px": int(SUCCESS_PX),
            "methods": {m: summarise(np.array(errors[m]), np.array(secs[m])) for m in methods},
            "seed": int(seed), "best_method": None,
            "setup_seconds": {m: round(v, 2) for m, v in setup.items()},
            "seconds": "CPU seconds of one single-threaded process",
            "geometry": {k: list(v) for k, v in GEOMETRY.items()},
+           **({"xfeat": xfeat_info} if "xfeat" in methods else {}),
+
            "photometric": {k: (list(v) if isinstance(v, tuple) else v)
                            for k, v in PHOTOMETRIC.items()}}
     ranked = sorted(methods, key=lambda m: (-doc["methods"][m]["success_rate"],

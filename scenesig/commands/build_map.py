@@ -22,6 +22,11 @@ def register(groups):
                         "1 with six runs or more)")
     p.add_argument("--config", default=None,
                    help="build options (overrides of mapping.build.default_config) as JSON text or a .json file")
+    p.add_argument("--layers", default=None, metavar="L,L,...",
+                   help="map layers to store (mapping.layers): signatures (always built: it georeferences the "
+                        "places) and the point-feature baselines orb, sift, xfeat (the reference run's keyframe) "
+                        "and orb-all, sift-all, xfeat-all (every training run's keyframe); 'all' for every one. "
+                        "Default: signatures, what the default method needs")
     p.add_argument("--skip-corrupt", action="store_true",
                    help="leave out frames whose image is truncated or corrupt (counted in build_summary.json) "
                         "instead of stopping")
@@ -52,6 +57,14 @@ def run(args) -> int:
     ref_path = Path(args.reference).resolve()
     reference = next((r for r in runs if r.root.resolve() == ref_path), None) or read_run(args.reference)
     config = load_config(args.config) or {}
+    if args.layers is not None:
+        from scenesig.mapping.layers import parse_layers
+
+        try:
+            config["layers"] = parse_layers(args.layers)
+        except ValueError as exc:
+            print(f"scenesig build-map: error: {exc}", file=sys.stderr)
+            return 2
     if args.frames_per_run is not None:
         config["frames_per_run"] = int(args.frames_per_run)
     summary = build_map(runs, reference, args.out, jobs=args.jobs, scheduler=args.scheduler, config=config,
