@@ -1,4 +1,4 @@
-"""Point-feature baselines for aerial scene matching: SIFT or ORB, Lowe's ratio test, RANSAC affine.
+"""Point-feature baselines for aerial scene matching: SIFT, ORB or XFeat, matching, RANSAC affine.
 
 A competent set-up for a nadir image against a north-up map: rotation-invariant features (the
 sensed image may be rotated; upright descriptors would not match beyond a few degrees), many
@@ -6,7 +6,9 @@ more features on the reference than on the sensed image (it covers about fifteen
 2-NN matching with Lowe's ratio 0.8, and an affine transform fitted by RANSAC
 (``cv2.estimateAffine2D``, 3-px reprojection threshold) -- the sensed centre mapped by it is the
 estimate.  Extraction and descriptor matching are :mod:`scenesig.signatures.pointfeatures`'; the
-reference's features are computed once per tile.
+reference's features are computed once per tile.  XFeat (Potje et al. 2024, :mod:`scenesig.signatures.xfeat`;
+rotation-robust by training, no orientation step) is matched with its authors' matcher instead of the
+ratio test: mutual nearest neighbours with cosine similarity above 0.82.
 """
 from __future__ import annotations
 
@@ -22,7 +24,9 @@ __all__ = ["default_config", "PointMatcher"]
 
 #: Point-feature settings.
 default_config = {
-    "kind": "sift",                 # "sift", "rootsift" or "orb"
+    "kind": "sift",                 # "sift", "rootsift", "orb" or "xfeat"
+    "xfeat": {},                    # overrides of signatures.xfeat.default_config (model file, tiling)
+    "min_cossim": 0.82,             # XFeat's matcher threshold (upstream's default)
     "ratio": 0.8,                   # Lowe's ratio test
     "sensed_features": 1500,        # strongest keypoints kept in the sensed image
     "reference_features": 15000,    # ... and in the reference tile
@@ -36,10 +40,11 @@ class PointMatcher:
     """SIFT / ORB + ratio test + RANSAC affine against one reference image (estimator API)."""
 
     def __init__(self, config: dict | None = None):
-        self.config = merge_settings(default_config, config, "point-matcher")
+        self.config = merge_settings(default_config, config, "point-matcher", open=("xfeat",))
 
     def _extract(self, image, n):
-        return pf.extract(image, self.config["kind"], n_features=int(n), upright=False)
+        return pf.extract(image, self.config["kind"], n_features=int(n), upright=False,
+                          config={"xfeat": self.config["xfeat"]} if self.config["kind"] == "xfeat" else None)
 
     def fit(self, reference: np.ndarray) -> "PointMatcher":
         """Extract the reference's features (once per tile)."""
@@ -51,7 +56,10 @@ class PointMatcher:
         t0 = time.perf_counter()
         cfg = self.config
         feats = self._extract(sensed, cfg["sensed_features"])
-        m = pf.match(feats, self.reference_, filter="ratio", ratio=float(cfg["ratio"]))
+        if cfg["kind"] == "xfeat":
+            m = pf.match(feats, self.reference_, filter="cossim", mutual=True, min_cossim=float(cfg["min_cossim"]))
+        else:
+            m = pf.match(feats, self.reference_, filter="ratio", ratio=float(cfg["ratio"]))
         est = ransac_affine(feats.xy[m.query], self.reference_.xy[m.train],
                             sensed_centre(sensed.shape), float(cfg["ransac_px"]),
                             int(cfg["min_inliers"]), int(cfg["ransac_iters"]))

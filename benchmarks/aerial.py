@@ -48,7 +48,7 @@ import numpy as np
 
 from scenesig.surveys.io import atomic_path, atomic_write_text
 
-METHODS = ("mrsmcc", "mrsm", "sism", "sift", "orb", "signatures")
+METHODS = ("mrsmcc", "mrsm", "sism", "sift", "orb", "xfeat", "signatures")
 SUCCESS_PX = 25.0
 
 
@@ -70,6 +70,7 @@ SEARCH = {
     "sift": [{"ratio": 0.7}, {}, {"ratio": 0.9}],
     "orb": [{"ratio": 0.7}, {}, {"ratio": 0.9}],
     "signatures": [{"min_prob": 0.2}, {}, {"min_prob": 0.5}],
+    "xfeat": [{}],      # its authors' matcher and settings (Potje et al. 2024): nothing to choose
 }
 
 
@@ -90,6 +91,10 @@ def _setup(method: str, images, landmarks, cache_dir, config: dict | None = None
         ests = [SISM(config).fit(im) for im in images]
     elif method in ("sift", "orb"):
         ests = [PointMatcher({**config, "kind": method}).fit(im) for im in images]
+    elif method == "xfeat":
+        from scenesig.benchmarks._models import xfeat_model
+
+        ests = [PointMatcher({**config, "kind": "xfeat", "xfeat": {"model": xfeat_model()}}).fit(im) for im in images]
     elif method == "signatures":
         ests = [SignatureMatcher(config, cache_dir=cache_dir).fit(im) for im in images]
     else:
@@ -260,6 +265,10 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
             secs = {m: [secs[m][i] for i in order] for m in methods}
     if bar is not None:
         bar.close()
+    if "xfeat" in methods:       # which model file ran (its sha256) and its settings
+        from scenesig.signatures.xfeat import get_xfeat
+
+        xfeat_info = get_xfeat(ests["xfeat"][0].config["xfeat"]).describe() if ests["xfeat"] else None
     doc = {"tiles": len(tiles), "trials": int(trials), "success_px": int(SUCCESS_PX),
            "methods": {m: {**summarise(np.array(errors[m]), np.array(secs[m])), "per_tile": per_tile(rows, m)}
                        for m in methods},
@@ -267,6 +276,7 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
            "setup_seconds": {m: round(v, 2) for m, v in setup.items()},
            "seconds": "CPU seconds of one single-threaded process",
            "geometry": {k: list(v) for k, v in GEOMETRY.items()},
+           **({"xfeat": xfeat_info} if "xfeat" in methods else {}),
            "photometric": {k: (list(v) if isinstance(v, tuple) else v)
                            for k, v in PHOTOMETRIC.items()}}
     if folds is not None:

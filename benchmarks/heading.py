@@ -17,6 +17,12 @@ Methods
     per orientation peak, identical once upright) before choosing the 1600.  ``plain`` reproduces
     a straightforward re-implementation: fixed bins over [-width, width], bin-centre estimate,
     duplicates kept -- it gives the reference numbers of ``../shared/data/README.md`` exactly.
+``xfeat``, ``xfeat-1600``
+    XFeat learned features (Potje et al. 2024; :mod:`scenesig.signatures.xfeat`) set up as its authors do:
+    upstream's top-k 4096 keypoints per image (``xfeat-1600``: the protocol's 1600), mutual nearest
+    neighbours with cosine similarity above 0.82 (upstream's ``match`` default), then the same
+    histogram voting.  The model is ``$SCENESIG_XFEAT_MODEL`` or ``../shared/models/xfeat/xfeat.onnx``
+    (its sha256 is in the JSON).
 ``signatures``
     :class:`scenesig.signatures.heading.SignatureHeading` (leave-one-session-out banks for the sessions
     layout; augmented map images for the sequence layout).
@@ -69,7 +75,9 @@ BASELINE_PRESETS = {
               "vote": {"voting": "fixed", "estimate": "centre", "origin": "-width"}},
 }
 
-POINT_METHODS = ("orb", "sift", "rootsift")
+POINT_METHODS = ("orb", "sift", "rootsift", "xfeat", "xfeat-1600")
+#: XFeat variants: keypoints per image (upstream's top-k, and the protocol's budget)
+XFEAT_BUDGETS = {"xfeat": 4096, "xfeat-1600": 1600}
 METHODS = POINT_METHODS + ("signatures",)
 
 
@@ -160,16 +168,33 @@ def run_point_features(dataset: GriefDataset, pairs: list[GriefPair], kind: str 
         Pairs whose features, matches and vote are kept in ``detail`` (for the figure).
     """
     t0 = time.perf_counter()
+    name = kind
+    xfeat_info = None
+    if kind in XFEAT_BUDGETS:
+        from scenesig.benchmarks._models import xfeat_model
+        from scenesig.signatures.xfeat import get_xfeat
+
+        n_features, kind = XFEAT_BUDGETS[kind], "xfeat"
+        xfeat_info = get_xfeat({"model": xfeat_model()}).describe()
     by_place: dict[int, list[int]] = {}
     for k, p in enumerate(pairs):
         by_place.setdefault(p.place, []).append(k)
     first = pairs[0] if pairs else None
     width = dataset.places[first.place].image(first.map, gray=True).shape[1] if first else 0
     cfg = _pf_config(preset, width)
+    if xfeat_info is not None:
+        # XFeat's own matcher (upstream's XFeat.match): mutual nearest neighbours, cosine > 0.82
+        cfg["match"] = {"filter": "cossim", "mutual": True}
+        cfg["xfeat"] = {"model": xfeat_info["model"]}
     estimates = np.full(len(pairs), np.nan)
+    from threadpoolctl import threadpool_limits
+
+    mcfg = pf._merge(cfg)["match"]
+    symmetric = mcfg["filter"] == "cossim" and mcfg["mutual"]
+    done: dict = {}
     outcomes: list[_PairOutcome | None] = [None] * len(pairs)
     detail, n_feat, t_extract, t_match, n_images = {}, [], 0.0, 0.0, 0
-    bar = _progress(len(pairs), f"{kind} pairs", progress)
+    bar = _progress(len(pairs), f"{name} pairs", progress)
     with ThreadPoolExecutor(max(1, n_jobs)) as pool:
         for place_idx, ks in by_place.items():
             place = dataset.places[place_idx]
@@ -184,8 +209,21 @@ def run_point_features(dataset: GriefDataset, pairs: list[GriefPair], kind: str 
 
             def one(k):
                 p = pairs[k]
-                vote, m = pf.estimate_displacement(feats[p.map], feats[p.live], cfg)
+                m = None
+                if symmetric:
+                    # mutual nearest neighbours on a symmetric similarity: the pair (live, map) has the
+                    # same matches as (map, live) with the roles swapped -- match each image pair once
+                    back = done.get((place_idx, p.live, p.map))
+                    if back is not None:
+                        m = pf.Matches(back.train, back.query, back.distance, back.second)
+                if m is None:
+                    with threadpool_limits(1):        # one BLAS thread per matching job
+                        m = pf.match(feats[p.map], feats[p.live], **pf._merge(cfg)["match"])
+                    if symmetric:
+                        done[(place_idx, p.map, p.live)] = m
                 dx = feats[p.live].xy[m.train, 0] - feats[p.map].xy[m.query, 0]
+                dy = feats[p.live].xy[m.train, 1] - feats[p.map].xy[m.query, 1]
+                vote = pf.vote_displacement(dx, dy=dy, **pf._merge(cfg)["vote"])
                 return k, vote, m, dx
 
             t = time.perf_counter()
@@ -215,7 +253,9 @@ def run_point_features(dataset: GriefDataset, pairs: list[GriefPair], kind: str 
         "config": pf._merge({**cfg, "n_features": n_features}),
         "error_rate_by_voting_mean_estimate": variants,
     }
-    return MethodResult(kind, estimates, seconds, extra, detail)
+    if xfeat_info is not None:
+        extra["xfeat"] = xfeat_info
+    return MethodResult(name, estimates, seconds, extra, detail)
 
 
 # ---------------------------------------------------------------------------------- signatures

@@ -30,7 +30,7 @@ CONFIG = {  # tests/build_world.py's cut-down build (three places, 12 shapes): t
     "mining": {"shapes": {"kinds": [{"name": "square-s", "size": 0.2, "aspect": 1.0, "nx": 3, "ny": 2},
                                     {"name": "wide", "size": 0.25, "aspect": 2.0, "nx": 3, "ny": 2}]},
                "n_partitions": 2},
-    "points": {"kinds": ["orb"], "n_candidates": 500, "max_points": 100}, "frames_per_run": 1, "min_images": 3,
+    "points": {"n_candidates": 500, "max_points": 100}, "layers": ["signatures", "orb", "orb-all"], "frames_per_run": 1, "min_images": 3,
 }
 
 

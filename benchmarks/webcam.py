@@ -25,6 +25,10 @@ Methods:
   thresholds) matched with mutual nearest neighbours and Lowe's ratio test (0.8) against every training
   image; the training image with the most matches is kept (retrieval by match count, as hloc users rank
   database images), and its matches are the correspondences.
+* ``xfeat``: XFeat learned features (Potje et al. 2024, :mod:`scenesig.signatures.xfeat`) as its authors set them
+  up: the 4096 best keypoints, mutual nearest neighbours with cosine similarity above 0.82, against every
+  training image as above.  Model: ``$SCENESIG_XFEAT_MODEL`` or ``../shared/models/xfeat/xfeat.onnx``
+  (its sha256 is in the JSON).
 
 Per test image the benchmark counts correct and total correspondences; an image is *localisable* with at
 least 10 correct ones.  Periods come from the hour in the file name: night 21-05 h, twilight 05-07 and
@@ -66,6 +70,7 @@ default_config = {
                         "sigma": 1.6},
                "orb": {"scaleFactor": 1.2, "nlevels": 8, "edgeThreshold": 31, "firstLevel": 0,
                        "WTA_K": 2, "patchSize": 31, "fastThreshold": 20}},
+    "xfeat": {"top_k": 4096, "min_cossim": 0.82},   # upstream's defaults (Potje et al. 2024)
 }
 
 #: Images whose camera moved by more than δ (from the data set's README); left out by default.
@@ -73,7 +78,7 @@ DEFAULT_EXCLUDE = ("courbevoie/20131029_085701", "courbevoie/20140409_082712")
 
 PERIODS = ("night", "twilight", "day")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
-METHODS = ("signatures", "orb", "sift")
+METHODS = ("signatures", "orb", "sift", "xfeat")
 
 
 # ---------------------------------------------------------------------------------- data set
@@ -234,7 +239,10 @@ def point_correspondences(train_feats, test_feats, cfg: dict) -> tuple[np.ndarra
     for tf in train_feats:
         if not len(tf) or not len(test_feats):
             continue
-        m = match(test_feats, tf, filter="ratio", ratio=float(cfg["ratio"]), mutual=bool(cfg["mutual"]))
+        if test_feats.kind == "xfeat":
+            m = match(test_feats, tf, filter="cossim", mutual=True, min_cossim=float(cfg["min_cossim"]))
+        else:
+            m = match(test_feats, tf, filter="ratio", ratio=float(cfg["ratio"]), mutual=bool(cfg["mutual"]))
         if len(m) > len(best[0]):
             best = (tf.xy[m.train].astype(float), test_feats.xy[m.query].astype(float))
     return best
@@ -244,6 +252,9 @@ def _extract(img, kind, cfg):
     from scenesig.signatures.pointfeatures import extract
 
     pc = cfg["points"]
+    if kind == "xfeat":
+        return extract(img, "xfeat", n_features=int(cfg["xfeat"]["top_k"]),
+                       config={"xfeat": {"model": cfg["xfeat"]["model"]}})
     return extract(img, kind, n_features=int(pc["n_features"]), upright=bool(pc["upright"]),
                    config={kind: pc[kind], "dedupe": True})
 
@@ -262,7 +273,7 @@ class ImageResult:
     test_xy: np.ndarray
 
 
-def run_benchmark(root, methods=METHODS, train: str = "multi", config: dict | None = None,
+def run_benchmark(root, methods=("signatures", "orb", "sift"), train: str = "multi", config: dict | None = None,
                   exclude=DEFAULT_EXCLUDE, n_jobs: int = 1, progress: bool = True):
     """Run the protocol; returns (summary dict, {method: [ImageResult]}, scenes)."""
     from tqdm import tqdm
@@ -272,6 +283,13 @@ def run_benchmark(root, methods=METHODS, train: str = "multi", config: dict | No
         if m not in METHODS:
             raise ValueError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
     scenes = load_scenes(root, train, exclude)
+    xfeat_info = None
+    if "xfeat" in methods:
+        from scenesig.benchmarks._models import xfeat_model
+        from scenesig.signatures.xfeat import get_xfeat
+
+        cfg["xfeat"] = {**cfg["xfeat"], "model": cfg["xfeat"].get("model") or xfeat_model()}
+        xfeat_info = get_xfeat({"model": cfg["xfeat"]["model"]}).describe()
     tol = float(cfg["tolerance_px"])
     results: dict[str, list[ImageResult]] = {m: [] for m in methods}
     seconds = {m: 0.0 for m in methods}
@@ -310,7 +328,7 @@ def run_benchmark(root, methods=METHODS, train: str = "multi", config: dict | No
             else:
                 feats = [_extract(im, m, cfg) for im in train_imgs]
                 corr = lambda img, feats=feats, m=m: point_correspondences(  # noqa: E731
-                    feats, _extract(img, m, cfg), cfg["points"])
+                    feats, _extract(img, m, cfg), {**cfg["points"], **cfg["xfeat"]})
             for f, img, s in test:
                 tr, te = corr(img)
                 tr, te = tr / s, te / s          # full-resolution pixels
@@ -332,7 +350,11 @@ def run_benchmark(root, methods=METHODS, train: str = "multi", config: dict | No
         summary["methods"]["signatures"]["banks"] = mining_stats
         summary["methods"]["signatures"]["config"] = cfg["signatures"]
     for m in methods:
-        if m != "signatures":
+        if m == "xfeat":
+            summary["methods"][m]["config"] = {**cfg["xfeat"], "xfeat": xfeat_info,
+                                               "matcher": "mutual nearest neighbour, cosine similarity > min_cossim",
+                                               "retrieval": "training image with most matches"}
+        elif m != "signatures":
             summary["methods"][m]["config"] = {**{k: v for k, v in cfg["points"].items()
                                                   if k not in ("orb", "sift")}, m: cfg["points"][m],
                                                "retrieval": "training image with most matches"}
@@ -450,7 +472,8 @@ def plot_periods(summary: dict, out_path) -> Path:
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     p = p or argparse.ArgumentParser(prog="scenesig bench webcam", description=__doc__.split("\n\n")[0])
     p.add_argument("dir", help="folder with one sub-folder of images per scene (e.g. ../shared/data/webcam)")
-    p.add_argument("--methods", default=",".join(METHODS), help="comma-separated: signatures,orb,sift")
+    p.add_argument("--methods", default="signatures,orb,sift",
+                   help="comma-separated: signatures,orb,sift,xfeat (xfeat needs its model file)")
     p.add_argument("--json", required=True, help="output JSON file")
     p.add_argument("--train", choices=["multi", "single"], default="multi")
     p.add_argument("--figure", default=None, help="figure folder (default: none)")

@@ -283,7 +283,7 @@ class SignatureLocaliser(WeakLocaliser):
 
 _METHODS: dict[str, Callable] = {"signatures": SignatureLocaliser}
 # Methods provided by other modules, imported on first use (they call register_method).
-_LAZY = {name: "scenesig.localiser.pointmethod" for name in ("orb", "sift", "orb-all", "sift-all")}
+_LAZY = {name: "scenesig.localiser.pointmethod" for name in ("orb", "sift", "xfeat", "orb-all", "sift-all", "xfeat-all")}
 
 
 def register_method(name: str, factory: Callable) -> None:

@@ -1,12 +1,13 @@
-"""Point-feature weak localisers (ORB, SIFT): the baselines of McManus et al. 2015, §4, on the same pipeline.
+"""Point-feature weak localisers (ORB, SIFT, XFeat): the baselines of McManus et al. 2015, §4, on the same pipeline.
 
-``scenesig localise MAP RUN --method orb|sift|orb-all|sift-all`` runs this instead of the scene
+``scenesig localise MAP RUN --method orb|sift|xfeat|orb-all|sift-all|xfeat-all`` runs this instead of the scene
 signatures; replay, the pose graph, SE(2) snapping, the failure rule (20 m blind -> oracle reset),
 the outputs and the metrics are the shared code of :mod:`scenesig.localiser.pipeline` / :mod:`scenesig.localiser.replay`.
 
 Set up as hloc users run point features.  Per frame, for the place the localiser chose:
 
-* **features** -- the live image's 2000 strongest upright ORB or SIFT features
+* **features** -- the live image's 2000 strongest upright ORB or SIFT features, or XFeat's top 4096
+  (Potje et al. 2024, set up as upstream: :mod:`scenesig.signatures.xfeat`)
   (:func:`scenesig.signatures.pointfeatures.extract`); inside a :func:`scenesig.signatures.pointfeatures.feature_cache`
   block, localisers of one kind replaying the same run (``sift`` and ``sift-all``) extract each frame
   once.
@@ -23,7 +24,8 @@ Set up as hloc users run point features.  Per frame, for the place the localiser
 * **matcher** (``match``) -- ``ratio`` (default): mutual nearest neighbours and Lowe's ratio test
   (0.8); ``dapc``: mutual nearest neighbours and the DAPC adaptive-distance test of Zhang et al.
   (CMC 2023, eqs. 6-7); ``gms``: nearest neighbours filtered by grid-based motion statistics
-  (Bian et al., CVPR 2017).
+  (Bian et al., CVPR 2017); ``mnn`` (XFeat's default, its authors' matcher): mutual nearest neighbours
+  with cosine similarity above 0.82.
 * **solve** -- robust absolute pose (:mod:`scenesig.localiser.absolute_pose`: LO-RANSAC, iterations driven
   by a 0.9999 confidence, non-linear refinement), then the same robust Levenberg-Marquardt with the
   motion prior, gating and checks as the signatures' eq. 10 solver
@@ -56,10 +58,14 @@ from .solver import default_pnp_config, solve_pnp_prior
 __all__ = ["default_config", "MATCHERS", "PointObservation", "LiveFrame", "PointLocaliser", "keypoint_sigma",
            "match_to_map", "method_name", "window_mask"]
 
-MATCHERS = ("ratio", "dapc", "gms")
+MATCHERS = ("ratio", "dapc", "gms", "mnn")
+#: point-feature kinds with a localiser
+POINT_KINDS = ("orb", "sift", "xfeat")
 
 default_config = {
     "n_features": 2000,          # live features per frame (strongest by detector response)
+    "xfeat_top_k": 4096,         # XFeat's live keypoints per frame (upstream's top-k)
+    "min_cossim": 0.82,          # match="mnn": cosine similarity threshold (upstream XFeat's default)
     "features": {},              # overrides of signatures.pointfeatures.default_config (upright, orb, sift)
     "match": "ratio",            # "ratio": mutual NN + Lowe; "dapc" (mutual NN + DAPC); "gms"
     "ratio": 0.8,                # Lowe's ratio (match="ratio")
@@ -106,7 +112,8 @@ def resolve_config(config: dict | None = None) -> dict:
 
 
 def match_to_map(live: PointFeatures, mapf: PointFeatures, matcher: str = "ratio", ratio: float = 0.8,
-                 mask: np.ndarray | None = None, image_size=None, gms: dict | None = None):
+                 mask: np.ndarray | None = None, image_size=None, gms: dict | None = None,
+                 min_cossim: float = 0.82):
     """Matches map -> live with one of :data:`MATCHERS` (module docstring).
 
     ``mask`` (n_map, n_live): pairs allowed (prior gating); ``image_size`` (width, height) of both
@@ -123,6 +130,8 @@ def match_to_map(live: PointFeatures, mapf: PointFeatures, matcher: str = "ratio
         # the M2Det scene-matching paper's order (§3.4): bidirectional (mutual) matching first, then the
         # dynamic distance test
         return match(mapf, live, filter="dapc", mutual=True, dapc_over="mutual", mask=mask)
+    if matcher == "mnn":
+        return match(mapf, live, filter="cossim", mutual=True, mask=mask, min_cossim=min_cossim)
     if matcher == "gms":
         size = {} if image_size is None else {"image_size_a": tuple(image_size), "image_size_b": tuple(image_size)}
         return match(mapf, live, filter="gms", mutual=False, mask=mask, gms={**(gms or {}), **size})
@@ -215,29 +224,36 @@ def window_mask(windows: np.ndarray, searchable: np.ndarray, xy: np.ndarray) -> 
 
 
 def method_name(kind: str, point_map: str = "reference") -> str:
-    """``orb``, ``sift`` (reference point map) or ``orb-all``, ``sift-all``."""
+    """``orb``, ``sift``, ``xfeat`` (reference point map) or ``orb-all``, ``sift-all``, ``xfeat-all``."""
     return kind if point_map == "reference" else f"{kind}-{point_map}"
 
 
 class PointLocaliser(WeakLocaliser):
-    """ORB or SIFT against a place's keyframe 3D points (a :class:`scenesig.localiser.pipeline.WeakLocaliser`).
+    """ORB, SIFT or XFeat against a place's keyframe 3D points (a :class:`scenesig.localiser.pipeline.WeakLocaliser`).
 
     Parameters
     ----------
     store : the map (built with point features: ``PlaceData.points``).
     camera, T_vehicle_camera : the live camera and extrinsic.
     config : overrides of :data:`default_config`.
-    kind : ``"orb"`` or ``"sift"``.
+    kind : ``"orb"``, ``"sift"`` or ``"xfeat"`` (the model file: ``features: {xfeat: {model: PATH}}``, else
+        ``$SCENESIG_XFEAT_MODEL``, else :data:`scenesig.signatures.xfeat.DEFAULT_MODEL_PATH`).
     """
 
     color = False
 
     def __init__(self, store: MapStore, camera: Camera, T_vehicle_camera: np.ndarray, config: dict | None = None,
                  kind: str = "orb"):
-        if kind not in ("orb", "sift"):
-            raise ValueError(f"kind must be 'orb' or 'sift', got {kind!r}")
+        if kind not in POINT_KINDS:
+            raise ValueError(f"kind must be one of {POINT_KINDS}, got {kind!r}")
         self.kind = kind
         self.config = _merge(config)
+        self.xfeat = None
+        if kind == "xfeat":
+            from scenesig.signatures.xfeat import get_xfeat
+
+            # load the model now: a missing file is an error before the replay starts, naming where it looked
+            self.xfeat = get_xfeat(self.config["features"].get("xfeat"))
         self.name = method_name(kind, self.config["point_map"])
         self.store = store
         self.camera = camera
@@ -252,11 +268,19 @@ class PointLocaliser(WeakLocaliser):
 
     def method_config(self) -> dict:
         cfg = self.config
+        xf = {}
+        if self.xfeat is not None:
+            xf = {"features": f"XFeat (Potje et al. 2024, ONNX, onnxruntime), the {cfg['xfeat_top_k']} best per "
+                              f"live image", "n_features": cfg["xfeat_top_k"], "xfeat": self.xfeat.describe(),
+                  "model_sha256": self.xfeat.sha256}
         return {"method": self.name, "family": "point features",
                 "features": f"{self.kind.upper()} (OpenCV), upright, the {cfg['n_features']} strongest per live image",
                 "n_features": cfg["n_features"], "feature_options": cfg["features"],
                 "matcher": {"ratio": "mutual nearest neighbour + Lowe ratio", "dapc": "mutual nearest neighbour + DAPC",
-                            "gms": "nearest neighbour + grid-based motion statistics"}[cfg["match"]],
+                            "gms": "nearest neighbour + grid-based motion statistics",
+                            "mnn": f"mutual nearest neighbour, cosine similarity > {cfg['min_cossim']}"}[cfg["match"]],
+                "min_cossim": cfg["min_cossim"] if cfg["match"] == "mnn" else None,
+                **xf,
                 "match": cfg["match"], "ratio": cfg["ratio"] if cfg["match"] == "ratio" else None,
                 "gms": cfg["gms"] if cfg["match"] == "gms" else None,
                 "point_map": cfg["point_map"],
@@ -308,7 +332,8 @@ class PointLocaliser(WeakLocaliser):
         localiser of the block has extracted them (``orb`` and ``orb-all`` replaying one run)."""
         cache = active_feature_cache()
         get = extract if cache is None else cache.extract
-        return get(image, self.kind, n_features=int(self.config["n_features"]), config=self.config["features"])
+        n = self.config["xfeat_top_k"] if self.kind == "xfeat" else self.config["n_features"]
+        return get(image, self.kind, n_features=int(n), config=self.config["features"])
 
     def prepare(self, image: np.ndarray) -> LiveFrame:
         """Extract the live image's features (needs neither place nor prior: the replay runs it
@@ -359,7 +384,7 @@ class PointLocaliser(WeakLocaliser):
                 continue
             sub = mp.features.subset(rows) if mp.n_keyframes > 1 else mp.features
             m = match_to_map(live, sub, cfg["match"], float(cfg["ratio"]),
-                             None if mask is None else mask[rows], size, cfg["gms"])
+                             None if mask is None else mask[rows], size, cfg["gms"], float(cfg["min_cossim"]))
             if best is None or len(m) > len(best[0]):
                 best, best_k = (m, rows), k
         m, rows = best
@@ -392,12 +417,15 @@ class PointLocaliser(WeakLocaliser):
 
 
 def _factory(kind, point_map):
+    # XFeat is matched as its authors match it (mutual NN on cosine similarity) unless told otherwise
+    base = {"point_map": point_map, **({"match": "mnn"} if kind == "xfeat" else {})}
+
     def make(store, camera, T_vehicle_camera, config=None):
-        return PointLocaliser(store, camera, T_vehicle_camera, {"point_map": point_map, **(config or {})}, kind=kind)
+        return PointLocaliser(store, camera, T_vehicle_camera, {**base, **(config or {})}, kind=kind)
     make.__name__ = f"make_{method_name(kind, point_map).replace('-', '_')}"
     return make
 
 
-for _kind in ("orb", "sift"):
+for _kind in POINT_KINDS:
     for _pm in POINT_MAPS:
         register_method(method_name(_kind, _pm), _factory(_kind, _pm))

@@ -606,6 +606,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     oracle_pose = _oracle(run) if oracle == "ins" else None     # a missing INS/GPS stops us before replaying
     own = isinstance(method, str)
     if own:
+        _check_layers(store, method)
         method = make_method(method, store, run.camera, run.T_vehicle_camera, cfg["method"] or None)
     loc = Localiser(store, oracle_pose, cfg["localiser"] or None)
     reloc = None
@@ -670,6 +671,23 @@ def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
         log.warning("map %s: %d place(s) on this run's route have fewer than %d signatures and will rarely "
                     "localise (expect dead reckoning and failures there): %s", store.root, len(weak),
                     MIN_SIGNATURES, ", ".join(map(str, weak)))
+
+
+def _check_layers(store: MapStore, method: str) -> None:
+    """A method whose map layer the map lacks is an error naming the map, the layer and the fix."""
+    from scenesig.mapping.layers import method_layers, missing_layers, store_layers
+
+    try:
+        method_layers(method)
+    except ValueError:
+        return                     # a method registered by other code: it checks its own map data
+    have = store_layers(store)
+    missing = missing_layers(have, method)
+    if missing:
+        raise DataError(store.root / "manifest.json",
+                        f"method {method!r} needs the map layer {', '.join(missing)}, which this map lacks (it has "
+                        f"{', '.join(have)}); build the map with build-map --layers {','.join([*have, *missing])}, or "
+                        f"add it with scenesig map add-layers {store.root} --reference RUN --layers {','.join(missing)}")
 
 
 def _json_safe(obj):

@@ -59,6 +59,7 @@ from scenesig.signatures.hog import level_scale
 from scenesig.mapping import georef as georef_mod
 from scenesig.mapping import places as places_mod
 from scenesig.mapping.coverage import MIN_SIGNATURES
+from scenesig.mapping import layers as layers_mod
 from scenesig.mapping.pointmap import build_point_features, build_point_features_all
 from scenesig.mapping.refine import Detections, REASONS, refine_landmarks
 from scenesig.mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
@@ -82,10 +83,12 @@ default_config = {
     "negative_places": [-3, 3],   # reference images of these place offsets serve as extra negatives
     "max_window_frames": 21,      # refinement window subsampled to at most this many frames
     "keyframe_width": 160,
-    "points": {},                 # overrides of mapping.pointmap.default_config (ORB/SIFT baseline map)
-    # point maps stored for the baselines: "reference" (the reference run's keyframe, the paper's
-    # baseline) and "all" (a keyframe from every training run at the place)
-    "point_maps": ["reference", "all"],
+    "points": {},                 # overrides of mapping.pointmap.default_config (point-feature baseline map)
+    # layers stored (mapping.layers): "signatures" (always), and for the point-feature baselines "orb",
+    # "sift", "xfeat" (the reference run's keyframe, the paper's baseline) and "orb-all", "sift-all",
+    # "xfeat-all" (a keyframe from every training run at the place).  The default is what the default
+    # method needs.
+    "layers": list(layers_mod.DEFAULT_LAYERS),
     # overrides of signatures.bank.default_config for the window detections: two pyramid levels either
     # side (the bank's default is one) let the detector follow a patch that grows or shrinks by up to
     # 41 % over the window instead of lagging (measured on the demo world: median landmark depth error
@@ -109,8 +112,14 @@ default_config = {
 
 def _merge(config):
     # every sub-dict is passed on whole to its stage, which checks it (resolve_config checks them all first)
-    return merge_settings(default_config, config, "build",
-                          open=tuple(k for k, v in default_config.items() if isinstance(v, dict)))
+    cfg = merge_settings(default_config, config, "build",
+                         open=tuple(k for k, v in default_config.items() if isinstance(v, dict)))
+    cfg["layers"] = layers_mod.parse_layers(cfg["layers"])
+    kinds = cfg["points"].get("kinds")
+    if kinds is not None and set(kinds) != set(layers_mod.point_plan(cfg["layers"])["extract"]):
+        raise ValueError(f"points.kinds {list(kinds)} disagrees with the layers {cfg['layers']}: choose the "
+                         f"point-feature families with 'layers' (build-map --layers)")
+    return cfg
 
 
 def resolve_config(config: dict | None = None) -> dict:
@@ -399,14 +408,28 @@ def _build_place(place, views, negatives, config):
     # place's world pose per run, combined over all places in build_map (mapping.georef)
     georef_obs = georef_mod.observe_place(place, views, images, kept_bank, landmarks, covs,
                                           Q=cfg["refine"].get("Q"), config=cfg["georeference"])
-    points = build_point_features(ref, camera, T_vc, cfg["points"])
-    if "all" in cfg["point_maps"]:
-        # every training run's keyframe, moved into the place frame by the visual solve above
-        poses = [np.eye(4)] + [None] * (len(views) - 1)
-        for k, o in enumerate(georef_obs[:len(views)]):
-            if k and o.get("ok") and o.get("T_place_vehicle") is not None:
-                poses[k] = np.asarray(o["T_place_vehicle"], float)
-        points.update(build_point_features_all(views, poses, cfg["points"], reference_points=points))
+    seconds = {"signatures": time.perf_counter() - t0}
+    plan = layers_mod.point_plan(cfg["layers"])
+    points = {}
+    # every training run's keyframe, moved into the place frame by the visual solve above
+    poses = [np.eye(4)] + [None] * (len(views) - 1)
+    for k, o in enumerate(georef_obs[:len(views)]):
+        if k and o.get("ok") and o.get("T_place_vehicle") is not None:
+            poses[k] = np.asarray(o["T_place_vehicle"], float)
+    for kind in plan["extract"]:
+        # one family at a time, so each layer's build time is its own
+        pcfg = {**cfg["points"], "kinds": [kind]}
+        t = time.perf_counter()
+        ref_points = build_point_features(ref, camera, T_vc, pcfg)
+        t_ref = time.perf_counter() - t
+        if kind in plan["reference"]:
+            points.update(ref_points)
+            seconds[kind] = t_ref
+        if kind in plan["all"]:
+            t = time.perf_counter()
+            points.update(build_point_features_all(views, poses, pcfg, reference_points=ref_points))
+            # the reference keyframe is the -all map's first: its cost is the layer's when not stored apart
+            seconds[f"{kind}-all"] = time.perf_counter() - t + (0.0 if kind in plan["reference"] else t_ref)
     data = PlaceData(
         bank_arrays=kept_bank.to_arrays(), landmarks=landmarks, covariances=covs,
         classifier_ids=np.arange(len(keep), dtype=np.int64),
@@ -425,7 +448,9 @@ def _build_place(place, views, negatives, config):
              # images to form partitions, texture, no convergence), then landmark refinement
              "rejected": mp.rejected,
              "depth_rel_errors": rel_err, "depth_truth_spread": truth_spread, "signatures": int(len(keep)),
-             "georef_runs_ok": int(sum(bool(o["ok"]) for o in georef_obs))}
+             "georef_runs_ok": int(sum(bool(o["ok"]) for o in georef_obs)),
+             # build time per layer (signatures: mining, refinement, georeferencing observations)
+             "seconds_by_layer": seconds}
     return data, stats
 
 
@@ -726,6 +751,10 @@ def _write_summary(out: Path, places, allstats: dict, seconds: float, corrupt_fi
         # where the bytes go: the scene-signature bank and its landmarks, the point-feature baseline's
         # keyframe features, the keyframe image for figures, and the metadata
         "bytes_per_place_by_part_mean": _bytes_by_part(files),
+        # the same per map layer (mapping.layers): what each layer costs a place, stored and built
+        "layers": _summary_layers(allstats, files),
+        "bytes_per_place_by_layer_mean": _bytes_by_part(files, by_layer=True),
+        "seconds_per_place_by_layer_mean": _seconds_by_layer(allstats),
         "seconds_per_place_mean": float(np.mean([st["seconds"] for st in allstats.values()])) if allstats else 0.0,
         "landmark_depth_rel_error_median": float(np.median(errs)) if errs else None,
         "landmark_depth_rel_error_quartiles": [float(q) for q in np.percentile(errs, [25, 50, 75])] if errs else None,
@@ -755,15 +784,40 @@ _PARTS = {"signatures": ("bank/", "landmarks", "covariances", "classifier_ids"),
           "keyframe": ("keyframe",)}
 
 
-def _bytes_by_part(files) -> dict:
-    """Mean stored (compressed) bytes per place file of each part in :data:`_PARTS` (the rest: ``meta``)."""
+def _summary_layers(allstats: dict, files) -> list:
+    """The layers the places were built with (from the journal; else from a place file's members)."""
+    seen = [name for st in allstats.values() for name in st.get("seconds_by_layer", {})]
+    if not seen and files:
+        import zipfile
+
+        with zipfile.ZipFile(files[0]) as z:
+            seen = [layers_mod.layer_of_member(i.filename) for i in z.infolist()]
+    return [name for name in layers_mod.LAYERS if name in set(seen)]
+
+
+def _seconds_by_layer(allstats: dict) -> dict:
+    """Mean build seconds per place of each layer (places whose stats record it)."""
+    acc: dict = {}
+    for st in allstats.values():
+        for k, v in (st.get("seconds_by_layer") or {}).items():
+            acc.setdefault(k, []).append(float(v))
+    return {k: float(np.mean(acc[k])) for k in layers_mod.LAYERS if k in acc}
+
+
+def _bytes_by_part(files, by_layer: bool = False) -> dict:
+    """Mean stored (compressed) bytes per place file of each part in :data:`_PARTS` (the rest: ``meta``),
+    or with ``by_layer`` of each map layer (:func:`scenesig.mapping.layers.layer_of_member`)."""
     import zipfile
 
-    totals = {k: 0 for k in (*_PARTS, "meta")}
+    totals = {} if by_layer else {k: 0 for k in (*_PARTS, "meta")}
     for f in files:
         with zipfile.ZipFile(f) as z:
             for info in z.infolist():
-                part = next((k for k, prefixes in _PARTS.items() if info.filename.startswith(prefixes)), "meta")
+                if by_layer:
+                    part = layers_mod.layer_of_member(info.filename)
+                    totals.setdefault(part, 0)
+                else:
+                    part = next((k for k, prefixes in _PARTS.items() if info.filename.startswith(prefixes)), "meta")
                 # the member's share of the file: its compressed data plus its local and central headers
                 totals[part] += info.compress_size + 30 + 46 + 2 * len(info.filename.encode())
     return {k: (v / len(files) if files else 0.0) for k, v in totals.items()}

@@ -63,15 +63,20 @@ __all__ = ["default_config", "resolve_config", "build_point_features", "build_po
            "point_covariances", "point_features", "select_frames", "keypoint_sigma", "add_to_map", "KINDS",
            "TriangulationStats"]
 
-KINDS = ("orb", "sift")
+KINDS = ("orb", "sift", "xfeat")
 
 default_config = {
     "kinds": ["orb", "sift"],
     "n_candidates": 1500,        # keyframe / window features detected per kind (strongest by response)
+    # XFeat's keyframe / window keypoints: upstream's top-k (Potje et al. 2024), as the live images get
+    "xfeat_candidates": 4096,
     "max_points": 500,           # 3D points kept per kind (keeps a place well under 0.25 MB)
     "baselines_m": [-5.0, -2.5, 2.5, 5.0],  # window frames matched to the keyframe, by signed distance
     "baseline_tolerance_m": 1.25,           # a baseline with no frame this close to it is skipped
     "ratio": 0.8,                # Lowe's ratio for keyframe <-> window matches (mutual as well)
+    # XFeat's keyframe <-> window matches: its own matcher (mutual NN, cosine similarity above this;
+    # upstream's default) instead of the ratio test
+    "xfeat_min_cossim": 0.82,
     "epipolar_px": 2.0,          # Sampson distance gate with the known relative pose (pixels)
     "reprojection_px": 2.0,      # a kept point reprojects within this in every view it keeps
     "min_parallax_deg": 1.0,     # largest angle between its viewing rays
@@ -367,9 +372,12 @@ def point_map_covariances(points: dict, kind: str, point_map: str, T_vehicle_cam
 
 
 def _compact_descriptors(desc: np.ndarray, kind: str) -> np.ndarray:
-    """uint8 (ORB always; SIFT when lossless), else float16 when lossless, else float32."""
+    """uint8 (ORB always; SIFT when lossless), float16 for XFeat (unit vectors: cosine similarities
+    change by < 1e-3), else float16 when lossless, else float32."""
     if kind == "orb" or desc.dtype == np.uint8:
         return np.ascontiguousarray(desc, dtype=np.uint8)
+    if kind == "xfeat":
+        return np.ascontiguousarray(desc, dtype=np.float16)
     d = np.asarray(desc, dtype=np.float32)
     if d.size == 0 or (np.all(d == np.round(d)) and d.min() >= 0 and d.max() <= 255):
         return d.astype(np.uint8)
@@ -440,8 +448,9 @@ def triangulate_keyframe(key_image: np.ndarray, images: list, T_key_frames: np.n
     cam0 = ideal_camera(camera)
     points, stats = {}, {}
     for kind in cfg["kinds"]:
-        kf = extract(key_image, kind, n_features=cfg["n_candidates"], config=cfg["features"])
-        others = [extract(img, kind, n_features=cfg["n_candidates"], config=cfg["features"]) for img in images]
+        n_cand = cfg["xfeat_candidates"] if kind == "xfeat" else cfg["n_candidates"]
+        kf = extract(key_image, kind, n_features=n_cand, config=cfg["features"])
+        others = [extract(img, kind, n_features=n_cand, config=cfg["features"]) for img in images]
         N, F = len(kf), len(images) + 1
         uv = np.full((N, F, 2), np.nan)
         sig = np.full((N, F), np.nan)
@@ -450,7 +459,8 @@ def triangulate_keyframe(key_image: np.ndarray, images: list, T_key_frames: np.n
         x0 = ideal_pixels(camera, kf.xy.astype(float))
         x0n = np.column_stack([(x0[:, 0] - cam0.cx) / cam0.fx, (x0[:, 1] - cam0.cy) / cam0.fy])
         for j, of in enumerate(others, start=1):
-            m = match(kf, of, filter="ratio", ratio=cfg["ratio"], mutual=True)
+            m = (match(kf, of, filter="cossim", mutual=True, min_cossim=cfg["xfeat_min_cossim"]) if kind == "xfeat"
+                 else match(kf, of, filter="ratio", ratio=cfg["ratio"], mutual=True))
             if not len(m):
                 continue
             x1 = ideal_pixels(camera, of.xy[m.train].astype(float))
@@ -552,13 +562,16 @@ def build_point_features_all(views, T_place_views, config: dict | None = None, r
     return combine_keyframe_maps(parts, poses, cfg["kinds"])
 
 
-def combine_keyframe_maps(parts: list, T_place_keyframes: list, kinds=KINDS) -> dict:
+def combine_keyframe_maps(parts: list, T_place_keyframes: list, kinds=None) -> dict:
     """One ``all`` point map from keyframe point maps (each in its own keyframe's vehicle frame).
 
     ``parts[j]`` is a :func:`build_point_features` output and ``T_place_keyframes[j]`` (4,4) that
     keyframe's vehicle pose in the place frame; see :func:`build_point_features_all` for the keys.
+    ``kinds``: default, those the first part holds.
     """
     poses = [np.asarray(T, dtype=float) for T in T_place_keyframes]
+    if kinds is None:                 # the kinds the keyframe maps hold
+        kinds = [k for k in KINDS if parts and f"{k}_kp" in parts[0]]
     out = {"all_T_place_keyframe": np.asarray(poses, np.float32).reshape(-1, 4, 4)}
     for kind in kinds:
         for name in ("kp", "desc", "xyz", "sigma", "keyframe"):
@@ -575,7 +588,7 @@ def combine_keyframe_maps(parts: list, T_place_keyframes: list, kinds=KINDS) -> 
                 dt = np.result_type(*[a.dtype for a in arrays]) if arrays else np.uint8
                 arrays = [a.astype(dt) for a in arrays]
             empty = {"kp": (0, 2), "xyz": (0, 3), "sigma": (0, 2), "keyframe": (0,),
-                     "desc": (0, 32 if kind == "orb" else 128)}[name]
+                     "desc": (0, {"orb": 32, "xfeat": 64}.get(kind, 128))}[name]
             out[f"{kind}_all_{name}"] = np.concatenate(arrays) if arrays else np.zeros(empty, np.float32)
     return out
 
@@ -613,7 +626,8 @@ def add_to_map(map_root, reference, config: dict | None = None, overwrite: bool 
     for idx in tqdm(sorted(store.places), desc="point features", unit="place", disable=not progress):
         meta = store.places[idx]
         data = store.load_place(idx)
-        if data.points and not overwrite:
+        kinds = _merge(config)["kinds"]
+        if not overwrite and all(f"{k}_kp" in (data.points or {}) for k in kinds):
             continue
         place = Place(idx, meta.T_world_place, 0.0, int(data.meta.get("reference_frame", -1)), list(meta.neighbours))
         views = training_views(place, [reference], places_cfg)
@@ -634,6 +648,8 @@ def add_to_map(map_root, reference, config: dict | None = None, overwrite: bool 
                                              return_stats=True)
         for k, st in stats.items():
             kept.setdefault(k, []).append(st["kept"])
+        # the place's other layers stay; the kinds built here are added (or replaced)
+        points = {**{k: np.asarray(v) for k, v in (data.points or {}).items()}, **points}
         writer.write_place(idx, PlaceData(dict(data.bank_arrays), np.array(data.landmarks), np.array(data.covariances),
                                           np.array(data.classifier_ids), data.keyframe, dict(data.meta), points))
         updated += 1

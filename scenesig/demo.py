@@ -2,11 +2,12 @@
 
 1. **simulate** the ``demo`` world (≈300 m loop): six training runs of mixed appearance and five
    held-out live runs (night, fog, snow, dusk and a sunny day for the like-for-like comparison);
-2. **build the map** from the training runs (scene-signature banks, landmarks and the ORB/SIFT
-   keyframe points of the point-feature baseline, one file per place);
+2. **build the map** from the training runs (scene-signature banks, landmarks and the keyframe points
+   of the point-feature baselines it runs -- its layers, :func:`demo_layers` -- one file per place);
 3. **localise** every live run with scene signatures and the four point-feature baselines: ORB and
    SIFT against the reference run's keyframes (``orb``, ``sift``: the paper's baseline) and against
-   keyframes from every training run (``orb-all``, ``sift-all``) (deterministic replay: the detector
+   keyframes from every training run (``orb-all``, ``sift-all``, and the learned ``xfeat-all`` when its
+   model file is found) (deterministic replay: the detector
    at 5 Hz, as in the paper), starting from and reset by the run's INS/GPS (the paper's protocol), and
    with scene signatures once more without any INS/GPS (``--oracle none``: global localisation from the
    map, relocalisation when lost) -- the ``signatures-none`` entry;
@@ -55,7 +56,9 @@ default_config = {
     "reference": "sunny",            # condition of the map run (the first training run with it)
     "camera_hz": 10.0,
     "detector_hz": 5.0,              # the paper's detector rate; every = camera_hz / detector_hz
-    "methods": ["signatures", "orb", "sift", "orb-all", "sift-all"],
+    # xfeat-all (learned features, Potje et al. 2024) runs when its model file is found
+    # ($SCENESIG_XFEAT_MODEL or ~/.local/share/scenesig/models/xfeat.onnx); the map holds the layers these need
+    "methods": ["signatures", "orb", "sift", "orb-all", "sift-all", "xfeat-all"],
     # methods also localised without INS/GPS (--oracle none); entry "<method>-none"
     "no_oracle_methods": ["signatures"],
 }
@@ -156,7 +159,8 @@ def _matching_task(map_root: str, world: str, live: list[str], reference: str, p
 #: CPU seconds of one live run's replay per entry, each on its own (demo world, the snow run), and of
 #: the matching experiment: only their order matters, to start the longest jobs first so that the
 #: workers finish together.
-_COST = {"sift-all": 37.0, "sift": 30.0, "orb-all": 14.0, "orb": 9.0, "signatures": 8.6, "signatures-none": 7.8}
+_COST = {"sift-all": 37.0, "sift": 30.0, "xfeat-all": 30.0, "xfeat": 25.0, "orb-all": 14.0, "orb": 9.0,
+         "signatures": 8.6, "signatures-none": 7.8}
 _MATCHING_COST = 20.0
 
 
@@ -224,6 +228,27 @@ def localise_live_runs(map_root, world, out, live: list[str], reference: str, en
             bar.update(1)
     bar.close()
     return metrics, matching
+
+
+def demo_layers(entries) -> list[str]:
+    """The map layers the demo's entries need (:func:`scenesig.mapping.layers.method_layers`): it builds what it runs."""
+    from scenesig.mapping.layers import method_layers, parse_layers
+
+    return parse_layers([name for e in entries for name in method_layers(e)])
+
+
+def _available_methods(methods) -> list[str]:
+    """``methods`` without the XFeat ones when the model file is not found (nothing is downloaded)."""
+    out = list(methods)
+    if any(m.startswith("xfeat") for m in out):
+        from scenesig.signatures.xfeat import ModelNotFoundError, model_path
+
+        try:
+            model_path()
+        except ModelNotFoundError as exc:
+            _log(f"leaving out {', '.join(m for m in out if m.startswith('xfeat'))}: {exc}")
+            out = [m for m in out if not m.startswith("xfeat")]
+    return out
 
 
 def _fmt(v, digits=2):
@@ -299,12 +324,16 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     runs = {n: read_run(out / "world" / n) for n in names}
     ref_name = train_names[list(cfg["training"]).index(cfg["reference"])]
 
-    _log(f"2/5 building the map from {len(train_names)} runs ({', '.join(train_names)}), reference {ref_name}")
+    methods = _available_methods(cfg["methods"])
+    entries = methods + [f"{m}-none" for m in cfg["no_oracle_methods"]]
+    layers = demo_layers(entries)
+    _log(f"2/5 building the map from {len(train_names)} runs ({', '.join(train_names)}), reference {ref_name}, "
+         f"layers {', '.join(layers)}")
     t = time.perf_counter()
-    build = build_map([runs[n] for n in train_names], runs[ref_name], out / "map", jobs=jobs)
+    build = build_map([runs[n] for n in train_names], runs[ref_name], out / "map", jobs=jobs,
+                      config={"layers": layers})
     stages["build_map"] = time.perf_counter() - t
 
-    entries = list(cfg["methods"]) + [f"{m}-none" for m in cfg["no_oracle_methods"]]
     _log(f"3/5 localising {len(live_names)} live runs with {', '.join(entries)} (detector every {every} frames; "
          f"-none: without INS/GPS), and the matching experiment (§4.2) alongside")
     t = time.perf_counter()
@@ -330,7 +359,9 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
                   for m in entries}
     summary = {"runs": rows, "seconds": time.perf_counter() - t0, "localise_seconds_by_method": per_method,
                "stage_seconds": stages, "map": {k: build.get(k) for k in (
-                   "places", "signatures_per_place_mean", "bytes_per_place_mean", "landmark_depth_rel_error_median")},
+                   "places", "signatures_per_place_mean", "bytes_per_place_mean", "landmark_depth_rel_error_median",
+                   "layers", "bytes_per_place_by_layer_mean", "seconds_per_place_by_layer_mean",
+                   "seconds_per_place_mean")},
                "config": cfg, "cpu_count": os.cpu_count(), "jobs": jobs,
                "report": str(index)}
     atomic_write_bytes(out / "summary.json", (json.dumps(summary, indent=2, allow_nan=False) + "\n").encode())

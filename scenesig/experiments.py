@@ -228,6 +228,17 @@ def matching_experiment(store: MapStore, runs: list, reference: SurveyRun | None
 
     cfg = _merge(config)
     methods = list(cfg["methods"])
+    from scenesig.mapping.layers import store_layers
+
+    have = store_layers(store)
+    lacking = [m for m in methods if m not in have]
+    if lacking:
+        # a point-feature family the map was built without (build-map --layers): no keyframe to match
+        import logging
+
+        logging.getLogger(__name__).warning("map %s has no %s layer: left out of the matching experiment",
+                                            store.root, ", ".join(lacking))
+        methods = [m for m in methods if m in have]
     places = sorted(store.places)
     R, P = len(runs), len(places)
     sc = float(cfg["heat_scale"])

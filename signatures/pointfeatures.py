@@ -39,8 +39,8 @@ __all__ = ["default_config", "PointFeatures", "Matches", "Vote", "extract", "mat
            "vote_displacement", "estimate_displacement", "FEATURE_KINDS", "MATCH_FILTERS", "FeatureCache",
            "feature_cache", "active_feature_cache"]
 
-FEATURE_KINDS = ("orb", "sift", "rootsift")
-MATCH_FILTERS = ("ratio", "dapc", "gms", "none")
+FEATURE_KINDS = ("orb", "sift", "rootsift", "xfeat")
+MATCH_FILTERS = ("ratio", "dapc", "gms", "none", "cossim")
 
 #: Grid-based motion statistics (Bian et al., "GMS: Grid-based Motion Statistics for Fast,
 #: Ultra-robust Feature Correspondence", CVPR 2017), the settings of the authors' code.
@@ -61,13 +61,16 @@ default_config = {
     # SIFT(0, 3, contrastThreshold, 10, 1.6).  GRIEF used contrast 0 and then kept the strongest
     # 1600; OpenCV's default 0.04 leaves fewer than 1600 on low-contrast (snow) images.
     "sift": {"nOctaveLayers": 3, "contrastThreshold": 0.04, "edgeThreshold": 10, "sigma": 1.6},
-    "match": {"filter": "ratio", "ratio": 0.9, "mutual": False},
+    "match": {"filter": "ratio", "ratio": 0.9, "mutual": False, "min_cossim": 0.82},
     "vote": {"bin_px": 20.0, "voting": "sliding", "estimate": "mean", "origin": 0.0,
              "max_dy": None},
     # SIFT emits one keypoint per orientation peak; once upright they are identical, so their
     # descriptors are each other's nearest neighbours and fail every ratio test.  Dropping the
     # copies before choosing the N strongest keeps N distinct features.
     "dedupe": True,
+    # XFeat (learned, :mod:`scenesig.signatures.xfeat`): overrides of signatures.xfeat.default_config (model file,
+    # tiling); its keypoint count is ``n_features`` (upstream's top-k)
+    "xfeat": {},
 }
 
 
@@ -78,7 +81,7 @@ class PointFeatures:
     Attributes
     ----------
     kind : str
-        ``"orb"``, ``"sift"`` or ``"rootsift"``.
+        ``"orb"``, ``"sift"``, ``"rootsift"`` or ``"xfeat"``.
     xy : ndarray, shape (N, 2), float32
         Keypoint positions, pixels (x right, y down).
     response, size, angle : ndarray, shape (N,)
@@ -86,7 +89,7 @@ class PointFeatures:
     octave : ndarray, shape (N,), int
         OpenCV's packed octave field (needed to recompute descriptors).
     descriptors : ndarray, shape (N, D)
-        uint8 (ORB, compared with Hamming distance) or float32 (SIFT, L2).
+        uint8 (ORB, compared with Hamming distance) or float32 (SIFT, L2; XFeat, unit length).
     image_shape : tuple
         (height, width) of the source image.
     """
@@ -193,7 +196,17 @@ def _make(kind: str, config: dict):
 
 
 def _merge(config: dict | None) -> dict:
-    return merge_settings(default_config, config, "point-feature")
+    return merge_settings(default_config, config, "point-feature", open=("xfeat",))
+
+
+def _extract_xfeat(image: np.ndarray, n: int, config: dict) -> PointFeatures:
+    """XFeat keypoints (:mod:`scenesig.signatures.xfeat`): the ``n`` best by score (upstream's top-k)."""
+    from scenesig.signatures.xfeat import get_xfeat
+
+    xy, score, desc = get_xfeat(config["xfeat"]).detect_and_compute(image, top_k=n if n > 0 else 1 << 30)
+    k = len(xy)
+    return PointFeatures("xfeat", xy, score, np.full(k, 8.0, np.float32), np.zeros(k, np.float32),
+                         np.zeros(k, np.int64), np.ascontiguousarray(desc), tuple(np.shape(image)[:2]))
 
 
 def extract(image: np.ndarray, kind: str = "orb", n_features: int | None = None,
@@ -204,9 +217,10 @@ def extract(image: np.ndarray, kind: str = "orb", n_features: int | None = None,
     ----------
     image : ndarray
         uint8 gray or BGR image.
-    kind : {"orb", "sift", "rootsift"}
+    kind : {"orb", "sift", "rootsift", "xfeat"}
         Detector + descriptor.  ``rootsift`` = SIFT with the Hellinger (L1-normalised square
-        root) mapping of Arandjelović & Zisserman.
+        root) mapping of Arandjelović & Zisserman; ``xfeat`` = the learned XFeat features
+        (:mod:`scenesig.signatures.xfeat`; ``upright`` does not apply).
     n_features : int, optional
         Keep this many strongest keypoints (by detector response); default 1600.
     upright : bool, optional
@@ -225,6 +239,8 @@ def extract(image: np.ndarray, kind: str = "orb", n_features: int | None = None,
     if upright is not None:
         cfg["upright"] = bool(upright)
     n = cfg["n_features"]
+    if kind == "xfeat":
+        return _extract_xfeat(image, n, cfg)
     gray = _as_gray(image)
     algo = _make(kind, cfg)
     kps = algo.detect(gray, None)
@@ -384,15 +400,17 @@ def _knn(da: np.ndarray, db: np.ndarray, norm: int, mask: np.ndarray | None = No
 
 def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: float = 0.9,
           mutual: bool = False, dapc_over: str = "all", mask: np.ndarray | None = None,
-          gms: dict | None = None) -> Matches:
+          gms: dict | None = None, min_cossim: float = 0.82) -> Matches:
     """Match descriptors of ``a`` to ``b`` (brute force, 2 nearest neighbours).
 
     Parameters
     ----------
     a, b : PointFeatures
         Same descriptor kind.
-    filter : {"ratio", "dapc", "none"}
-        ``ratio``: keep when ``d1 < ratio * d2`` (Lowe).  ``dapc``: keep when
+    filter : {"ratio", "dapc", "gms", "none", "cossim"}
+        ``ratio``: keep when ``d1 < ratio * d2`` (Lowe).  ``cossim``: unit descriptors (XFeat) kept
+        when their cosine similarity ``1 - d1² / 2`` exceeds ``min_cossim`` -- with ``mutual``, XFeat's
+        own matcher (Potje et al. 2024; :func:`scenesig.signatures.xfeat.match_mnn`).  ``dapc``: keep when
         ``d1 < d2 - mean(d2 - d1)``, the mean over all of a's 2-NN pairs -- a threshold that adapts
         to how separable this image pair's descriptors are (M2Det scene-matching paper, §3.4, eqs. 6-7).  ``none``: keep
         every nearest neighbour.
@@ -430,6 +448,13 @@ def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: floa
         mask = np.asarray(mask, bool)
         if mask.shape != (len(a), len(b)):
             raise ValueError(f"mask must have shape {(len(a), len(b))}, got {mask.shape}")
+    if filter == "cossim" and mutual and mask is None:
+        # XFeat's matcher on the similarity matrix (one matrix product, as upstream does)
+        from scenesig.signatures.xfeat import match_mnn
+
+        ia, ib, s = match_mnn(a.descriptors, b.descriptors, min_cossim)
+        dist = np.sqrt(np.clip(2.0 - 2.0 * s.astype(float), 0.0, None))
+        return Matches(ia.astype(np.int64), ib.astype(np.int64), dist, np.full(len(ia), np.inf))
     idx, d1, d2 = _knn(a.descriptors, b.descriptors, a.norm, mask)
     keep = idx >= 0
     if mutual:
@@ -442,6 +467,8 @@ def match(a: PointFeatures, b: PointFeatures, filter: str = "ratio", ratio: floa
         finite = np.isfinite(d2) & pool
         gap = float(np.mean(d2[finite] - d1[finite])) if finite.any() else 0.0
         keep &= d1 < d2 - gap
+    elif filter == "cossim":
+        keep &= (1.0 - 0.5 * d1 ** 2) > min_cossim
     elif filter == "gms":
         gms = dict(gms or {})
         size_a = gms.pop("image_size_a", None) or a.image_shape[::-1]     # call arguments, not settings

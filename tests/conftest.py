@@ -6,6 +6,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"
+SHARED_MODELS = ROOT.parent / "shared" / "models"
 
 
 @pytest.fixture
@@ -14,6 +15,17 @@ def grief_root():
     path = SHARED_DATA / "grief"
     if not path.is_dir():
         pytest.skip(f"real data not found at {path} (tests on GRIEF need ../shared/data beside the project)")
+    return path
+
+
+@pytest.fixture
+def xfeat_model():
+    """``../shared/models/xfeat/xfeat.onnx`` (and onnxruntime); skips with a message where either is absent."""
+    path = SHARED_MODELS / "xfeat" / "xfeat.onnx"
+    if not path.is_file():
+        pytest.skip(f"XFeat model not found at {path} (tests of learned features need ../shared/models "
+                    f"beside the project)")
+    pytest.importorskip("onnxruntime", reason="XFeat needs onnxruntime (pip install 'scenesig[learned]')")
     return path
 
 

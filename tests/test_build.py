@@ -126,6 +126,17 @@ def test_build_summary_schema_and_values(world):
     assert set(parts) == {"signatures", "point_features", "keyframe", "meta"}
     assert all(v > 0 for v in parts.values())
     assert sum(parts.values()) == pytest.approx(np.mean(sizes), abs=100)
+    # ... and by map layer: the layers asked for (ORB, reference and every run's keyframe), their bytes and
+    # build seconds; the point layers' bytes add up to the point-feature part
+    assert summary["layers"] == ["signatures", "orb", "orb-all"]
+    by_layer = summary["bytes_per_place_by_layer_mean"]
+    assert set(by_layer) == {"signatures", "orb", "orb-all", "all_keyframe_poses", "keyframe", "meta"}
+    assert by_layer["signatures"] == pytest.approx(parts["signatures"])
+    assert by_layer["orb"] + by_layer["orb-all"] + by_layer["all_keyframe_poses"] == pytest.approx(
+        parts["point_features"])
+    secs = summary["seconds_per_place_by_layer_mean"]
+    assert set(secs) == {"signatures", "orb", "orb-all"} and all(v > 0 for v in secs.values())
+    assert sum(secs.values()) <= summary["seconds_per_place_mean"] * 1.001
     assert [p["bytes"] for p in manifest["places"]] == sizes
     assert summary["signatures_per_place_mean"] == pytest.approx(np.mean([p["signatures"] for p in manifest["places"]]))
     assert summary["signatures_per_place_mean"] > 0

@@ -1,6 +1,7 @@
 """``scenesig demo`` end to end on the tiny world: every stage runs, summary.json has the README's schema,
 the report is written, and a re-run reuses what is there."""
 import json
+import os
 
 import pytest
 
@@ -13,23 +14,55 @@ METRIC_KEYS = {"method", "run", "lateral_error_m", "heading_error_deg", "localis
                "relocalisations", "false_fixes", "relocalise_m"}
 
 
+from conftest import SHARED_MODELS
+
+XFEAT = SHARED_MODELS / "xfeat" / "xfeat.onnx"
+
+
+def _has_xfeat():
+    try:
+        import onnxruntime  # noqa: F401
+    except ImportError:
+        return False
+    return XFEAT.is_file()
+
+
+#: the methods the demo runs here: xfeat-all only where ../shared/models has the model
+METHODS = [m for m in default_config["methods"] if _has_xfeat() or not m.startswith("xfeat")]
+
+
 @pytest.fixture(scope="module")
 def demo_out(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
-    assert main(["demo", "--preset", "tiny", "--out", str(out), "--jobs", "2"]) == 0
+    old = os.environ.get("SCENESIG_XFEAT_MODEL")
+    if _has_xfeat():
+        os.environ["SCENESIG_XFEAT_MODEL"] = str(XFEAT)
+    else:
+        os.environ["SCENESIG_XFEAT_MODEL"] = str(out / "no-model.onnx")     # the demo leaves xfeat out
+    try:
+        assert main(["demo", "--preset", "tiny", "--out", str(out), "--jobs", "2"]) == 0
+    finally:
+        os.environ.pop("SCENESIG_XFEAT_MODEL")
+        if old is not None:
+            os.environ["SCENESIG_XFEAT_MODEL"] = old
     return out
 
 
 def test_summary_schema(demo_out):
     s = json.loads((demo_out / "summary.json").read_text())
     assert set(s) >= {"runs", "seconds", "localise_seconds_by_method"} and s["seconds"] > 0
-    # signatures and the four point-feature baselines (reference and all-runs point maps)
-    assert set(default_config["methods"]) == {"signatures", "orb", "sift", "orb-all", "sift-all"}
-    assert set(s["localise_seconds_by_method"]) == set(default_config["methods"]) | {
+    # signatures, the four ORB/SIFT baselines (reference and all-runs point maps) and XFeat's
+    assert set(default_config["methods"]) == {"signatures", "orb", "sift", "orb-all", "sift-all", "xfeat-all"}
+    assert set(s["localise_seconds_by_method"]) == set(METHODS) | {
         f"{m}-none" for m in default_config["no_oracle_methods"]}
+    # the map holds the layers the demo runs, and no other
+    assert s["map"]["layers"] == [name for name in ("signatures", "orb", "sift", "xfeat", "orb-all", "sift-all",
+                                                    "xfeat-all") if name in METHODS]
+    assert set(s["map"]["bytes_per_place_by_layer_mean"]) >= set(s["map"]["layers"])
+    assert set(s["map"]["seconds_per_place_by_layer_mean"]) == set(s["map"]["layers"])
     assert [r["conditions"] for r in s["runs"]] == [[c] for c in default_config["live"]]
     for r in s["runs"]:
-        assert set(r["methods"]) == set(default_config["methods"]) | {
+        assert set(r["methods"]) == set(METHODS) | {
             f"{m}-none" for m in default_config["no_oracle_methods"]}
         for name, m in r["methods"].items():
             assert METRIC_KEYS <= set(m), METRIC_KEYS - set(m)
@@ -61,7 +94,8 @@ def test_report_and_matching_written(demo_out):
     assert (demo_out / "map" / "build_summary.json").is_file()
 
 
-def test_rerun_reuses_outputs(demo_out, capsys):
+def test_rerun_reuses_outputs(demo_out, capsys, monkeypatch):
+    monkeypatch.setenv("SCENESIG_XFEAT_MODEL", str(XFEAT if _has_xfeat() else demo_out / "no-model.onnx"))
     before = {p: p.stat().st_mtime_ns for p in (demo_out / "world").rglob("frames.csv")}
     loc = demo_out / "localise" / "run06_night" / "signatures" / "metrics.json"
     loc_before = loc.read_bytes()

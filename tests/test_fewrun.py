@@ -17,7 +17,7 @@ SHAPES = {"kinds": [{"name": "square-s", "size": 0.15, "aspect": 1.0, "nx": 8, "
                     {"name": "wide", "size": 0.20, "aspect": 2.0, "nx": 5, "ny": 4},
                     {"name": "tall", "size": 0.20, "aspect": 0.5, "nx": 8, "ny": 3}]}
 CONFIG = {"mining": {"shapes": SHAPES}, "max_window_frames": 9,
-          "points": {"kinds": ["orb"], "n_candidates": 500, "max_points": 100}}
+          "points": {"n_candidates": 500, "max_points": 100}, "layers": ["signatures", "orb", "orb-all"]}
 
 
 @pytest.fixture(scope="module")

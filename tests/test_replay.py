@@ -224,7 +224,9 @@ def _tiny_world(root: Path, camera_hz: float, mining: dict | None):
     # the paper's one frame per run (four runs: four images, no augmentation) keeps this test's time;
     # maps from fewer runs are tested in tests/test_fewrun.py
     build_map(train, train[0], root / "map", jobs=2, progress=False,
-              config={"frames_per_run": 1, "min_images": 4, **({"mining": mining} if mining else {})})
+              config={"frames_per_run": 1, "min_images": 4, **({"mining": mining} if mining else {}),
+                      # the point-feature baselines the tests below run
+                      "layers": ["signatures", "orb", "sift", "orb-all"]})
     return root / "map", live
 
 

@@ -26,6 +26,11 @@ def register(groups):
     p.add_argument("--preset", choices=preset_names(), default=None,
                    help="settings preset under --config (default: the project's defaults; paper: McManus et al. "
                         "2015's values where ours differ -- scenesig config show --preset paper --differences)")
+    p.add_argument("--layers", default=None, metavar="L,L,...",
+                   help="map layers to store (mapping.layers): signatures (always built: it georeferences the "
+                        "places) and the point-feature baselines orb, sift, xfeat (the reference run's keyframe) "
+                        "and orb-all, sift-all, xfeat-all (every training run's keyframe); 'all' for every one. "
+                        "Default: signatures, what the default method needs")
     p.add_argument("--skip-corrupt", action="store_true",
                    help="leave out frames whose image is truncated or corrupt (counted in build_summary.json) "
                         "instead of stopping")
@@ -56,6 +61,13 @@ def run(args) -> int:
     from scenesig.presets import apply_preset
 
     config = load_config(args.config) or {}
+    if args.layers is not None:
+        from scenesig.mapping.layers import parse_layers
+
+        try:
+            config["layers"] = parse_layers(args.layers)
+        except ValueError as exc:
+            args._parser.error(f"--layers: {exc}")
     if args.frames_per_run is not None:
         config["frames_per_run"] = int(args.frames_per_run)
     try:

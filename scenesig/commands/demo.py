@@ -16,6 +16,9 @@ def register(groups):
                    help="simulated world (default demo, ≈300 m; tiny is a one-minute smoke run)")
     p.add_argument("--camera-hz", type=float, default=None,
                    help="camera rate of the simulated runs (default 10 Hz; the detector runs at 5 Hz either way)")
+    p.add_argument("--methods", default=None, metavar="M,M,...",
+                   help="localisation methods (default signatures,orb,sift,orb-all,sift-all,xfeat-all); the map "
+                        "holds the layers these need")
     p.add_argument("--lifelong", action="store_true",
                    help="then the lifelong-map stage: an unseen condition's run A updates the map; run B of it "
                         "and another live run are localised before and after (scenesig/lifelong.py)")
@@ -34,6 +37,19 @@ def run(args) -> int:
     config = {"preset": args.preset}
     if args.camera_hz:
         config["camera_hz"] = float(args.camera_hz)
+    if getattr(args, "methods", None):
+        from scenesig.mapping.layers import method_layers
+
+        methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+        try:
+            for m in methods:
+                method_layers(m)
+        except ValueError as exc:
+            import sys
+
+            print(f"scenesig demo: error: --methods: {exc}", file=sys.stderr)
+            return 2
+        config["methods"] = methods
     run_demo(args.out, jobs=int(args.jobs), config=config)
     if getattr(args, "lifelong", False):
         from scenesig.demo import build_demo_report

@@ -6,8 +6,9 @@ import json
 from ._types import positive_int
 
 #: the localisation methods: scene signatures and the point-feature baselines (``-all``: keyframes from
-#: every training run)
-METHODS = ("signatures", "orb", "sift", "orb-all", "sift-all")
+#: every training run; ``xfeat``: learned features, model from $SCENESIG_XFEAT_MODEL or
+#: ~/.local/share/scenesig/models/xfeat.onnx)
+METHODS = ("signatures", "orb", "sift", "xfeat", "orb-all", "sift-all", "xfeat-all")
 
 
 def register(groups):
@@ -18,8 +19,9 @@ def register(groups):
     p.add_argument("map", help="map folder")
     p.add_argument("run", help="survey run to replay")
     p.add_argument("--method", choices=METHODS, default="signatures")
-    p.add_argument("--match", choices=("ratio", "dapc", "gms"), default=None,
-                   help="point features: mutual NN + ratio 0.8 (default), DAPC, or GMS")
+    p.add_argument("--match", choices=("ratio", "dapc", "gms", "mnn"), default=None,
+                   help="point features: mutual NN + ratio 0.8 (default for orb, sift), DAPC, GMS, or mutual NN "
+                        "with cosine similarity > 0.82 (default for xfeat)")
     p.add_argument("--point-map", choices=("reference", "all"), default=None,
                    help="point features: the reference run's keyframe per place (orb, sift) or one per "
                         "training run (orb-all, sift-all)")
