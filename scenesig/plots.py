@@ -21,7 +21,7 @@ __all__ = ["METHOD_COLORS", "plot_matching_counts", "plot_matching_heatmaps", "w
 
 #: Method colours, as in the paper where it has them (signatures red, point features green, INS blue).
 METHOD_COLORS = {"signatures": "tab:red", "orb": "tab:green", "sift": "tab:olive", "orb-all": "tab:cyan",
-                 "sift-all": "tab:brown", "ins": "tab:blue",
+                 "sift-all": "tab:brown", "hybrid": "tab:purple", "hybrid-orb": "tab:pink", "ins": "tab:blue",
                  "truth": "k"}
 
 

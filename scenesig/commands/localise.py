@@ -5,9 +5,10 @@ import json
 
 from ._types import positive_int
 
-#: the localisation methods: scene signatures and the point-feature baselines (``-all``: keyframes from
-#: every training run)
-METHODS = ("signatures", "orb", "sift", "orb-all", "sift-all")
+#: the localisation methods: scene signatures, the point-feature baselines (``-all``: keyframes from
+#: every training run) and both in one solve (``hybrid``: signatures + SIFT; localiser.hybrid)
+METHODS = ("signatures", "orb", "sift", "orb-all", "sift-all", "hybrid", "hybrid-orb", "hybrid-sift-all",
+           "hybrid-orb-all")
 
 
 def register(groups):
@@ -17,7 +18,7 @@ def register(groups):
     p.add_argument("run", help="survey run to replay")
     p.add_argument("--method", choices=METHODS, default="signatures")
     p.add_argument("--match", choices=("ratio", "dapc", "gms"), default=None,
-                   help="point features: mutual NN + ratio 0.8 (default), DAPC, or GMS")
+                   help="point features (and hybrid's): mutual NN + ratio 0.8 (default), DAPC, or GMS")
     p.add_argument("--point-map", choices=("reference", "all"), default=None,
                    help="point features: the reference run's keyframe per place (orb, sift) or one per "
                         "training run (orb-all, sift-all)")
