@@ -33,18 +33,23 @@ if TYPE_CHECKING:
     from .replay import ReplayResult
 
 __all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "FALSE_FIX_M", "reference_path", "map_relative_truth", "compute_metrics",
-           "write_frames_csv", "frames_csv_text", "read_frames_csv", "write_outputs", "detection_rates", "read_output_files",
+           "write_frames_csv", "frames_csv_text", "read_frames_csv", "write_outputs", "detection_rates",
+           "inlier_types", "read_output_files",
            "read_localisation"]
 
 #: Columns of ``frames.csv`` (the errors are NaN without truth; the bounds NaN without a pose).
 FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
                   "distance_since_localisation", "lateral_bound_95_m", "longitudinal_bound_95_m",
-                  "heading_bound_95_deg", "integrity_alert")
+                  "heading_bound_95_deg", "integrity_alert", "signature_inliers", "point_inliers")
+#: the 95 % bounds (NaN without a pose)
+BOUND_COLUMNS = FRAMES_COLUMNS[8:11]
+#: the per-type inlier counts (which measurement types the solver used; hybrid: both), integers
+_COUNT_COLUMNS = ("signature_inliers", "point_inliers")
 #: the columns an output folder written before the bounds existed has (still read)
 _FRAMES_REQUIRED = FRAMES_COLUMNS[:8]
 #: ``metrics.json`` entries that measure the machine rather than the result (they differ between runs).
 TIMING_KEYS = ("ms_per_detection", "ms_per_solve", "ms_per_odometry_update", "ms_per_retrieval", "realtime_factor",
-               "wall_seconds")
+               "wall_seconds", "cpu_seconds", "cpu_ms_per_frame")
 #: Accepted localisations further than this from the truth are ``false_fixes`` (metres).
 FALSE_FIX_M = 5.0
 
@@ -198,6 +203,8 @@ def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> d
         "ms_per_retrieval": tm.get("ms_per_retrieval"),
         "realtime_factor": tm.get("realtime_factor"),
         "wall_seconds": tm.get("wall_seconds"),
+        "cpu_seconds": tm.get("cpu_seconds"),
+        "cpu_ms_per_frame": tm.get("cpu_ms_per_frame"),
         "mode": result.mode,
         "every": result.every,
         "distance_m": cov["distance_m"],
@@ -206,6 +213,7 @@ def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> d
         "detector_frames": int(result.detector_ran.sum()),
         "localisations": int(result.localised.sum()),
         **detection_rates(result.detections[result.detector_ran], result.inliers[result.detector_ran]),
+        **inlier_types(result),
         "truth_source": "none",
         "map": str(store.root),
         # frames whose image failed strict decoding (truncated or corrupt): skipped, odometry went on
@@ -233,6 +241,21 @@ def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> d
     if getattr(result, "camera_check", None) is not None:
         metrics["camera_check"] = result.camera_check     # mapping.camera_check.assess, before the replay
     return metrics
+
+
+def inlier_types(result) -> dict:
+    """Which measurement types the solver used: per detector frame the mean signature and point-feature
+    inliers (``signature_inliers_mean``, ``point_inliers_mean``) and the accepted localisations that kept
+    at least ``4`` signature / ``12`` point inliers (``localisations_with_signatures``,
+    ``localisations_with_points``; the signature and point methods' acceptance counts)."""
+    ran = np.asarray(result.detector_ran, bool)
+    loc = np.asarray(result.localised, bool)
+    s = np.asarray(result.signature_inliers, float)
+    p = np.asarray(result.point_inliers, float)
+    return {"signature_inliers_mean": float(s[ran].mean()) if ran.any() else None,
+            "point_inliers_mean": float(p[ran].mean()) if ran.any() else None,
+            "localisations_with_signatures": int((loc & (s >= 4)).sum()),
+            "localisations_with_points": int((loc & (p >= 12)).sum())}
 
 
 def _median(v) -> float | None:
@@ -398,19 +421,20 @@ def write_frames_csv(path: Path, result: ReplayResult, ev, bounds: dict | None =
 def frames_csv_text(result: ReplayResult, ev, bounds: dict | None = None) -> str:
     """The text of ``frames.csv`` (see :func:`write_frames_csv`)."""
     n = len(result.times)
-    b = dict(bounds or {})
+    b = bounds or {}
+    cols = [b.get(c, np.full(n, np.nan)) for c in BOUND_COLUMNS]
     flag = getattr(result, "integrity_alert", None)
     if flag is None:
         flag = b.get("integrity_alert")
-    b["integrity_alert"] = np.zeros(n) if flag is None else np.nan_to_num(np.asarray(flag, float))
-    cols = [b.get(c, np.full(n, np.nan)) for c in FRAMES_COLUMNS[8:]]
+    counts = [np.zeros(n) if flag is None else np.nan_to_num(np.asarray(flag, float)),
+              *(np.asarray(getattr(result, c), float) for c in _COUNT_COLUMNS)]
     lines = [",".join(FRAMES_COLUMNS)]
     for i, t in enumerate(result.times):
         lines.append(",".join([f"{t:.6f}", str(int(result.places[i])), str(int(result.detections[i])),
                                str(int(result.inliers[i])), str(int(result.localised[i])),
                                _fmt(ev.lateral_m[i]), _fmt(ev.heading_deg[i]),
-                               _fmt(result.distance_since_localisation[i]), *(_fmt(c[i]) for c in cols[:-1]),
-                               str(int(cols[-1][i]))]))
+                               _fmt(result.distance_since_localisation[i]), *(_fmt(c[i]) for c in cols),
+                               *(str(int(c[i])) if np.isfinite(c[i]) else "0" for c in counts)]))
     return "\n".join(lines) + "\n"
 
 
@@ -570,9 +594,11 @@ class _Track:
         self.oracle_reads = int(metrics.get("oracle_reads", 0))
         self.first_fix_time = metrics.get("first_fix_time")
         self.relocalisations = [tuple(p) for p in metrics.get("relocalisation_times") or []]
-        self.bounds = {c: frames.get(c, np.full(n, np.nan)) for c in FRAMES_COLUMNS[8:]}
+        self.bounds = {c: frames.get(c, np.full(n, np.nan)) for c in BOUND_COLUMNS}
         self.integrity_alert = frames.get("integrity_alert", np.zeros(n))
         self.integrity_alerts = list(metrics.get("integrity_alert_list") or [])
+        self.signature_inliers = frames.get("signature_inliers", np.zeros(n)).astype(int)
+        self.point_inliers = frames.get("point_inliers", np.zeros(n)).astype(int)
 
 
 def evaluate_folder(folder, truth=None, map_root=None, max_path_distance_m: float | None = None,

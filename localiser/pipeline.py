@@ -268,14 +268,15 @@ class SignatureLocaliser(WeakLocaliser):
         n = len(obs)
         if n < self.solver_config["min_inliers"]:
             return Measurement(None, n, 0, "too_few_detections", obs.ms, 0.0, False,
-                               {"whole_image": obs.whole_image, "searched": obs.searched})
+                               {"whole_image": obs.whole_image, "searched": obs.searched, "signature_inliers": 0})
         res = solve(obs.uv, obs.R, obs.landmarks, prior.T_place_vehicle, prior.covariance, self.camera,
                     self.T_vehicle_camera, landmark_cov=obs.landmark_cov, config=self.solver_config)
         c = res.constraint(self.store.places[place].T_world_place)
         # the inliers' squared Mahalanobis residuals: the integrity monitor's residual test
         r2 = float(np.sum(res.mahalanobis_sq[res.inliers])) if res.n_inliers else float("nan")
         return Measurement(c, n, res.n_inliers, res.reason, obs.ms, res.ms, True,
-                           {"whole_image": obs.whole_image, "searched": obs.searched, "residual_chi2": r2})
+                           {"whole_image": obs.whole_image, "searched": obs.searched, "residual_chi2": r2,
+                            "signature_inliers": res.n_inliers})
 
     def close(self):
         self.detector.close()
@@ -284,6 +285,7 @@ class SignatureLocaliser(WeakLocaliser):
 _METHODS: dict[str, Callable] = {"signatures": SignatureLocaliser}
 # Methods provided by other modules, imported on first use (they call register_method).
 _LAZY = {name: "scenesig.localiser.pointmethod" for name in ("orb", "sift", "xfeat", "orb-all", "sift-all", "xfeat-all")}
+_LAZY.update({name: "scenesig.localiser.hybrid" for name in ("hybrid", "hybrid-orb", "hybrid-sift-all", "hybrid-orb-all")})
 
 
 def register_method(name: str, factory: Callable) -> None:

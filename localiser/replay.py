@@ -35,7 +35,9 @@ of a localisation shaded and the resets marked).
 Timings in ``metrics.json``: ``ms_per_detection`` is the detector block per frame (for point
 features including the extraction, wherever it ran), ``ms_per_solve`` the solver, and
 ``realtime_factor`` the data duration over the wall time of the replay loop alone (opening the map
-and the run, the evaluation and writing the outputs are not counted).
+and the run, the evaluation and writing the outputs are not counted); ``cpu_seconds`` the process's
+CPU time over the same loop (all threads) and ``cpu_ms_per_frame`` that per camera frame -- on a
+shared machine less sensitive to the load than the wall time.
 
 The run's INS/GPS poses (``groundtruth.tum``) are the *oracle* (``oracle="ins"``, the paper's
 protocol and the default): they initialise the localiser and reset it after a failure, and are never
@@ -130,10 +132,16 @@ class ReplayResult:
     integrity_alert: np.ndarray | None = None  # (N,) bool: the integrity monitor refused this frame's fix
     integrity_alerts: list = field(default_factory=list)  # localiser.integrity.Alert dicts
     integrity_stats: list = field(default_factory=list)   # localiser.integrity.FrameStats of every tracked frame
+    signature_inliers: np.ndarray | None = None  # (N,) the solver's inliers that are signature detections
+    point_inliers: np.ndarray | None = None      # (N,) ... that are point-feature matches (hybrid: both)
 
     def __post_init__(self):
         if self.valid is None:
             self.valid = np.ones(len(self.times), dtype=bool)
+        if self.signature_inliers is None:
+            self.signature_inliers = np.zeros(len(self.times), dtype=int)
+        if self.point_inliers is None:
+            self.point_inliers = np.zeros(len(self.times), dtype=int)
 
 
 def _oracle(run: SurveyRun):
@@ -201,6 +209,8 @@ class _Recorder:
         self.places = np.full(n, -1, dtype=int)
         self.detections = np.zeros(n, dtype=int)
         self.inliers = np.zeros(n, dtype=int)
+        self.signature_inliers = np.zeros(n, dtype=int)
+        self.point_inliers = np.zeros(n, dtype=int)
         self.localised = np.zeros(n, dtype=bool)
         self.detector_ran = np.zeros(n, dtype=bool)
         self.distance = np.zeros(n)
@@ -255,6 +265,9 @@ class _Recorder:
             self.detector_ran[i] = True
             self.detections[i] = m.detections
             self.inliers[i] = m.inliers
+            # which measurement types the solver kept (a method that says nothing: neither)
+            self.signature_inliers[i] = int(m.extra.get("signature_inliers", 0))
+            self.point_inliers[i] = int(m.extra.get("point_inliers", 0))
             self.localised[i] = accepted
             self.reasons[i] = m.reason if not accepted else None
             self.ms_detect.append(ms_det)
@@ -620,6 +633,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     rec = _Recorder(run)
     extra = {}
     wall0 = time.perf_counter()
+    cpu0 = time.process_time()        # every thread of the process: less load-sensitive than the wall time
     try:
         if realtime:
             extra = _realtime(method, loc, run, rec, float(speed), progress, int(cfg["odometry_queue"]), reloc,
@@ -630,6 +644,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
         if own:
             method.close()
     wall = time.perf_counter() - wall0
+    cpu = time.process_time() - cpu0
     if monitor.state == "probation" and rec.probation_start is not None:
         # the run ended before the tracked frames confirmed the last global fix: it was never a localisation
         loc.discard(float(rec.times[-1]), undo_fix=True)
@@ -646,6 +661,8 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
         "ms_per_odometry_update": loc.ms_per_odometry_update,
         "realtime_factor": duration / wall if wall > 0 else None,
         "wall_seconds": wall,
+        "cpu_seconds": cpu,
+        "cpu_ms_per_frame": 1e3 * cpu / len(run) if len(run) else None,
         "duration_s": duration,
         **extra,
     }
@@ -659,7 +676,8 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
                         oracle, loc.oracle_reads, rec.valid.copy(), loc.first_fix_time, list(loc.relocalisations),
                         rec.covariances, _settings(resolved, None if realtime else every, realtime, speed, oracle),
                         camera_check=None, integrity_alert=rec.alert.copy(),
-                        integrity_alerts=[a.as_dict() for a in monitor.alerts], integrity_stats=list(monitor.history))
+                        integrity_alerts=[a.as_dict() for a in monitor.alerts], integrity_stats=list(monitor.history),
+                        signature_inliers=rec.signature_inliers, point_inliers=rec.point_inliers)
 
 
 def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
@@ -774,6 +792,15 @@ def method_options(method: str, match: str | None = None, point_map: str | None 
         if given:
             raise ValueError(f"{' and '.join(given)} apply to the point-feature methods, not to signatures")
         return opts
+    if method.startswith("hybrid"):
+        # the point part takes the point options; the point map is in the method's name
+        if point_map is not None and point_map != ("all" if method.endswith("-all") else "reference"):
+            raise ValueError(f"--point-map {point_map} contradicts --method {method}")
+        points = {"match": match} if match is not None else {}
+        if not prior_gating:
+            points["prior_gating"] = False
+            return {"signatures": {"prior_gating": False}, "points": points}
+        return {"points": points} if points else {}
     if match is not None:
         opts["match"] = match
     if point_map is not None:

@@ -23,6 +23,9 @@ __all__ = ["LAYERS", "DEFAULT_LAYERS", "parse_layers", "method_layers", "point_p
 LAYERS = ("signatures",) + KINDS + tuple(f"{k}-all" for k in KINDS)
 #: What the default method (signatures) needs.
 DEFAULT_LAYERS = ("signatures",)
+#: hybrid localisation (signatures and point features in one solve, scenesig.localiser.hybrid) needs
+#: the signatures and one point layer
+HYBRID_LAYERS = {"hybrid": "sift", "hybrid-orb": "orb", "hybrid-sift-all": "sift-all", "hybrid-orb-all": "orb-all"}
 
 
 def parse_layers(layers) -> list[str]:
@@ -51,6 +54,8 @@ def method_layers(method: str) -> tuple[str, ...]:
     """The layers a localisation method needs (``sift-all`` -> ``("sift-all",)``; a ``-none`` suffix,
     the demo's no-INS/GPS variant of a method, needs what the method needs)."""
     name = method.removesuffix("-none")
+    if name in HYBRID_LAYERS:
+        return ("signatures", HYBRID_LAYERS[name])
     if name not in LAYERS:
         raise ValueError(f"no map layer serves method {method!r}; layers: {', '.join(LAYERS)}")
     return (name,)

@@ -7,7 +7,9 @@
 3. **localise** every live run with scene signatures and the four point-feature baselines: ORB and
    SIFT against the reference run's keyframes (``orb``, ``sift``: the paper's baseline) and against
    keyframes from every training run (``orb-all``, ``sift-all``, and the learned ``xfeat-all`` when its
-   model file is found) (deterministic replay: the detector
+   model file is found) -- and both in one solve (``hybrid``:
+   signatures + SIFT, :mod:`scenesig.localiser.hybrid`; it takes the live SIFT features ``sift`` extracted)
+   (deterministic replay: the detector
    at 5 Hz, as in the paper), starting from and reset by the run's INS/GPS (the paper's protocol), and
    with scene signatures once more without any INS/GPS (``--oracle none``: global localisation from the
    map, relocalisation when lost) -- the ``signatures-none`` entry;
@@ -17,7 +19,8 @@
 
        {"runs": [{"run": str, "conditions": [str],
                   "methods": {"signatures": METRICS, "orb": METRICS, "sift": METRICS,
-                              "orb-all": METRICS, "sift-all": METRICS, "signatures-none": METRICS}}],
+                              "orb-all": METRICS, "sift-all": METRICS, "hybrid": METRICS,
+                              "signatures-none": METRICS}}],
         "seconds": float, "localise_seconds_by_method": {METHOD: float}}
 
    where METRICS is the localiser's ``metrics.json``; ``localise_seconds_by_method`` sums each
@@ -58,7 +61,7 @@ default_config = {
     "detector_hz": 5.0,              # the paper's detector rate; every = camera_hz / detector_hz
     # xfeat-all (learned features, Potje et al. 2024) runs when its model file is found
     # ($SCENESIG_XFEAT_MODEL or ~/.local/share/scenesig/models/xfeat.onnx); the map holds the layers these need
-    "methods": ["signatures", "orb", "sift", "orb-all", "sift-all", "xfeat-all"],
+    "methods": ["signatures", "orb", "sift", "orb-all", "sift-all", "xfeat-all", "hybrid"],
     # methods also localised without INS/GPS (--oracle none); entry "<method>-none"
     "no_oracle_methods": ["signatures"],
 }
@@ -160,19 +163,33 @@ def _matching_task(map_root: str, world: str, live: list[str], reference: str, p
 #: the matching experiment: only their order matters, to start the longest jobs first so that the
 #: workers finish together.
 _COST = {"sift-all": 37.0, "sift": 30.0, "xfeat-all": 30.0, "xfeat": 25.0, "orb-all": 14.0, "orb": 9.0,
-         "signatures": 8.6, "signatures-none": 7.8}
+         "signatures": 8.6, "signatures-none": 7.8,
+         "hybrid": 14.0, "hybrid-orb": 12.0}
+
+
+def _feature_kind(entry: str) -> str:
+    """The point-feature kind whose live features an entry extracts (``hybrid``: SIFT), or the entry."""
+    from scenesig.localiser.hybrid import HYBRID_METHODS
+
+    method = entry.removesuffix("-none")
+    if method in HYBRID_METHODS:
+        return HYBRID_METHODS[method][0]
+    return method.split("-")[0]
+
+
 _MATCHING_COST = 20.0
 
 
 def localise_groups(todo: list[tuple[str, str]]) -> list[tuple[str, list[str]]]:
     """``(run, entry)`` pairs -> ``(run, [entry, ...])`` jobs: a run's point-feature entries of one kind
-    (``orb`` / ``orb-all``, ``sift`` / ``sift-all``, with or without INS/GPS) share a job, each other
-    entry is its own; the costliest first (:data:`_COST`)."""
+    (``orb`` / ``orb-all`` / ``hybrid-orb``, ``sift`` / ``sift-all`` / ``hybrid``, with or without INS/GPS)
+    share a job, so the live features are extracted once; each other entry is its own; the costliest
+    first (:data:`_COST`)."""
     from scenesig.mapping.pointmap import KINDS
 
     groups: dict = {}
     for run, entry in todo:
-        kind = entry.removesuffix("-none").split("-")[0]
+        kind = _feature_kind(entry)
         key = (run, kind) if kind in KINDS else (run, entry)
         groups.setdefault(key, []).append(entry)
     return sorted(((key[0], entries) for key, entries in groups.items()), key=lambda job: -_cost(job[1]))

@@ -449,6 +449,11 @@ def summary_rows(outputs: list) -> list[dict]:
                      "lateral_bound_95_median_m": m.get("lateral_bound_95_m_median"),
                      "bound_coverage_95": m.get("bound_coverage_95"),
                      "truth_source": m.get("truth_source"),
+                     # which measurement types the solver kept (hybrid: both), and the cost
+                     "heading_map_median_deg": (m.get("heading_error_map_deg") or {}).get("median"),
+                     "signature_inliers_mean": m.get("signature_inliers_mean"),
+                     "point_inliers_mean": m.get("point_inliers_mean"),
+                     "realtime_factor": m.get("realtime_factor"), "cpu_ms_per_frame": m.get("cpu_ms_per_frame"),
                      "folder": str(o.folder)})
     return rows
 

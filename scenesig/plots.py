@@ -21,7 +21,8 @@ __all__ = ["METHOD_COLORS", "plot_matching_counts", "plot_matching_heatmaps", "w
 
 #: Method colours, as in the paper where it has them (signatures red, point features green, INS blue).
 METHOD_COLORS = {"signatures": "tab:red", "orb": "tab:green", "sift": "tab:olive", "orb-all": "tab:cyan",
-                 "sift-all": "tab:brown", "xfeat": "tab:purple", "xfeat-all": "tab:pink", "ins": "tab:blue",
+                 "sift-all": "tab:brown", "xfeat": "tab:purple", "xfeat-all": "tab:pink", "hybrid": "tab:orange",
+                 "hybrid-orb": "tab:gray", "ins": "tab:blue",
                  "truth": "k"}
 
 

@@ -98,7 +98,13 @@ def _summary_table(rows: list[dict], out: Path) -> str:
             "<th title='median 95 % bound on the lateral error relative to the map (localised frames)'>"
             "lateral bound 95 % (m)</th>"
             "<th title='share of localised frames whose lateral error relative to the map is within their bound "
-            "(needs truth)'>bound coverage</th></tr>")
+            "(needs truth)'>bound coverage</th>"
+            "<th title='heading error relative to the map (simulated maps)'>heading vs map (&deg;)</th>"
+            "<th title='mean solver inliers per detector frame that are signature detections / point matches "
+            "(hybrid: both in one solve)'>inliers: signatures / points</th>"
+            "<th title='data duration over replay wall time (machine and load dependent)'>real-time factor</th>"
+            "<th title='process CPU time per camera frame: less load-sensitive than the wall time'>CPU ms / frame</th>"
+            "</tr>")
     body = []
     for r in rows:
         cls = " class='sig'" if r["method"] == "signatures" else ""
@@ -121,7 +127,10 @@ def _summary_table(rows: list[dict], out: Path) -> str:
             f"{_fmt(r.get('false_fixes'))}</td>"
             f"<td>{_fmt(r.get('lateral_bound_95_median_m'))}</td>"
             f"<td class='{_coverage_class(r.get('bound_coverage_95'))}'>"
-            f"{_fmt(r.get('bound_coverage_95'), pct=True)}</td></tr>")
+            f"{_fmt(r.get('bound_coverage_95'), pct=True)}</td>"
+            f"<td>{_fmt(r.get('heading_map_median_deg'))}</td>"
+            f"<td>{_fmt(r.get('signature_inliers_mean'), 1)} / {_fmt(r.get('point_inliers_mean'), 1)}</td>"
+            f"<td>{_fmt(r.get('realtime_factor'), 1)}</td><td>{_fmt(r.get('cpu_ms_per_frame'), 0)}</td></tr>")
     return f"<table id='summary'>{head}{''.join(body)}</table>"
 
 

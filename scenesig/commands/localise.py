@@ -5,10 +5,12 @@ import json
 
 from ._types import positive_int
 
-#: the localisation methods: scene signatures and the point-feature baselines (``-all``: keyframes from
+#: the localisation methods: scene signatures, the point-feature baselines (``-all``: keyframes from
 #: every training run; ``xfeat``: learned features, model from $SCENESIG_XFEAT_MODEL or
-#: ~/.local/share/scenesig/models/xfeat.onnx)
-METHODS = ("signatures", "orb", "sift", "xfeat", "orb-all", "sift-all", "xfeat-all")
+#: ~/.local/share/scenesig/models/xfeat.onnx) and both in one solve (``hybrid``: signatures + SIFT;
+#: localiser.hybrid)
+METHODS = ("signatures", "orb", "sift", "xfeat", "orb-all", "sift-all", "xfeat-all", "hybrid", "hybrid-orb",
+           "hybrid-sift-all", "hybrid-orb-all")
 
 
 def register(groups):
@@ -20,7 +22,7 @@ def register(groups):
     p.add_argument("run", help="survey run to replay")
     p.add_argument("--method", choices=METHODS, default="signatures")
     p.add_argument("--match", choices=("ratio", "dapc", "gms", "mnn"), default=None,
-                   help="point features: mutual NN + ratio 0.8 (default for orb, sift), DAPC, GMS, or mutual NN "
+                   help="point features (and hybrid's): mutual NN + ratio 0.8 (default for orb, sift), DAPC, GMS, or mutual NN "
                         "with cosine similarity > 0.82 (default for xfeat)")
     p.add_argument("--point-map", choices=("reference", "all"), default=None,
                    help="point features: the reference run's keyframe per place (orb, sift) or one per "
