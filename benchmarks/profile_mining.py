@@ -8,7 +8,7 @@ the trainer can be judged against it:
 * ``partitions`` -- appearance descriptors and the partition split;
 * ``candidates`` -- unrolling every window a shape may fire on (``_candidates``);
 * ``negatives`` -- sampling and unrolling the local and external negatives (``_negatives``);
-* ``gram`` -- the negatives' Gram matrix per shape (``_Trainer``);
+* ``gram`` -- the negatives' Gram matrix per shape (``scenesig.signatures.classifier.LinearSVMTrainer``);
 * ``svm_kernel`` / ``svm_solve`` -- assembling each fit's kernel and the filter / the libsvm solve;
 * ``fire`` -- scoring the next partition's windows (``_fire``);
 * ``calibration`` -- Platt scaling of the held-out scores;
@@ -34,12 +34,12 @@ __all__ = ["profile_mining", "main"]
 
 
 def _targets(timer):
-    from scenesig.signatures import bank, hog, mining
+    from scenesig.signatures import bank, classifier, hog, mining
     return [(hog, "build_pyramid", "pyramids"), (bank, "build_pyramid", "pyramids"),
             (mining, "partition_images", "partitions"), (mining, "appearance_descriptor", "partitions"),
             (mining, "_candidates", "candidates"), (mining, "_negatives", "negatives"),
-            (mining._Trainer, "__init__", "gram"), (mining._Trainer, "fit", "svm_kernel"),
-            (mining, "_svm_dual", "svm_solve"), (mining, "_fire", "fire"), (mining, "_platt", "calibration"),
+            (classifier.LinearSVMTrainer, "__init__", "gram"), (classifier.LinearSVMTrainer, "fit", "svm_kernel"),
+            (classifier, "svm_dual", "svm_solve"), (mining, "_fire", "fire"), (mining, "_platt", "calibration"),
             (mining, "_refine_nominal", "refine_nominal"), (mining, "_mine_shape", "shape_bookkeeping")]
 
 

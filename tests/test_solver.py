@@ -59,12 +59,13 @@ def test_landmark_covariance_is_propagated_into_image():
 
 
 def test_whitening_matches_finite_difference_projection():
-    from scenesig.localiser.solver import _merge, _Problem, default_config
+    from scenesig.localiser.solver import _Problem, default_config
+    from scenesig.surveys.settings import merge_settings
 
     p = synthetic_problem(5, outlier_fraction=0.0, seed=4)
     cov_l = np.stack([np.diag([0.5, 0.1, 2.0])] * 5)
     prob = _Problem(p["uv"], p["R"], p["landmarks"], cov_l, p["camera"], p["T_vehicle_camera"],
-                    p["T_place_vehicle_prior"], p["P_prior"], _merge(None, default_config))
+                    p["T_place_vehicle_prior"], p["P_prior"], merge_settings(default_config))
     T = p["T_true"]
     W = prob.whitening(T, np.arange(5))
     T_cp = invert(T @ p["T_vehicle_camera"])
