@@ -12,7 +12,7 @@ import json, os, sys, threading
 import cv2
 before = {"cv": cv2.getNumThreads(), "env": os.environ.get("MALLOC_MMAP_THRESHOLD_")}
 import numpy as np
-import signatures.hog, signatures.bank, mapping.build, localiser.replay
+import scenesig.signatures.hog, scenesig.signatures.bank, scenesig.mapping.build, scenesig.localiser.replay
 from scenesig.signatures.hog import build_pyramid
 build_pyramid(np.random.default_rng(0).integers(0, 255, (96, 128), dtype=np.uint8), threads=2)
 after = {"cv": cv2.getNumThreads(), "env": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
