@@ -166,6 +166,13 @@ def test_uncertainty(world, tmp_path, capsys):
     _run("uncertainty", [tmp_path / "loc", "--factors", "1,2"], capsys)
 
 
+def test_hybrid_calibration(world, tmp_path, capsys):
+    runs, root = world         # the tiny map holds ORB keyframes (tests/build_world.py)
+    doc = _run("hybrid_calibration", [root, runs[2].root, "--points", "orb", "--every", "8",
+                                      "--json", tmp_path / "h.json"], capsys, tmp_path / "h.json")
+    assert "config" in doc
+
+
 def test_rosbag_import(world, capsys):
     pytest.importorskip("rosbags")
     runs, _ = world

@@ -67,7 +67,8 @@ def run(args) -> int:
         try:
             config["layers"] = parse_layers(args.layers)
         except ValueError as exc:
-            args._parser.error(f"--layers: {exc}")
+            print(f"scenesig build-map: error: {exc}", file=sys.stderr)
+            return 2
     if args.frames_per_run is not None:
         config["frames_per_run"] = int(args.frames_per_run)
     try:
