@@ -26,9 +26,12 @@ Each is tested over a sliding window of ``window`` detector frames (sums, as RAI
 satellites), so a single unlucky frame neither raises nor clears an alert.
 
 **Decisions.**  A fix found by global localisation or relocalisation (:mod:`scenesig.localiser.relocalise`) is
-*tentative* until ``probation_frames`` tracked frames have passed every test with at most
-``probation_misses`` frames that failed to solve in between; only then is it accepted and the frames
-from then on are localised.  A probation that fails raises an **alert**: the fix is discarded, the
+*tentative* until ``probation_frames`` solved frames at ``probation_places`` places or more have passed
+the residual and innovation tests, their support over the whole probation is at least
+``probation_min_support`` and at most ``probation_misses`` frames failed to solve in between (a look-alike
+place on another map fires its own bank, but the next place's signatures hardly fire); only then is it
+accepted and the frames from then on are localised.  A global search that goes ``max_search_m`` without
+a confirmed fix raises an alert too (once per search).  A probation that fails raises an **alert**: the fix is discarded, the
 frames that tracked it lose their poses, and the localiser is lost again.  While tracking, a window whose
 statistics fail raises an alert as well: no fix is accepted; without INS/GPS the localiser is lost
 (and must pass probation again), with INS/GPS it dead-reckons on its oracle until ``probation_frames``

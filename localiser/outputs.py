@@ -37,7 +37,8 @@ __all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "FALSE_FIX_M", "reference_path", "ma
            "inlier_types", "read_output_files",
            "read_localisation"]
 
-#: Columns of ``frames.csv`` (the errors are NaN without truth; the bounds NaN without a pose).
+#: Columns of ``frames.csv`` (the errors are NaN without truth; the bounds NaN without a pose; ``integrity_alert``
+#: 1 where the integrity monitor refused the frame's fix, :mod:`scenesig.localiser.integrity`).
 FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
                   "distance_since_localisation", "lateral_bound_95_m", "longitudinal_bound_95_m",
                   "heading_bound_95_deg", "integrity_alert", "signature_inliers", "point_inliers")
@@ -103,8 +104,10 @@ def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: 
     detection rates ``detections_per_frame_mean`` and ``inliers_per_detection_mean``
     (:func:`detection_rates`); ``frames_corrupt`` and ``corrupt_frames`` (frames skipped: image truncated
     or corrupt); ``method_config`` (the method's settings); ``settings`` (every setting of the replay,
-    resolved: ``replay``, ``localiser``, ``posegraph``, ``method``, and ``relocalise`` without INS/GPS --
-    :func:`scenesig.localiser.replay.resolve_config`); and in real-time mode ``frames_dropped``,
+    resolved: ``replay``, ``localiser``, ``posegraph``, ``integrity``, ``method``, and ``relocalise`` without
+    INS/GPS -- :func:`scenesig.localiser.replay.resolve_config`); the integrity monitor's ``integrity_alerts``,
+    ``integrity_alert_frames`` and ``integrity_alert_list`` (:mod:`scenesig.localiser.integrity`) and the camera
+    check's ``camera_check`` (:mod:`scenesig.mapping.camera_check`); and in real-time mode ``frames_dropped``,
     ``frames_detected``, ``odometry_queue_max``, ``odometry_coalesced`` and ``lag_max_s``.
 
     **The evaluation against truth** (:func:`truth_metrics`, only where the run has ``truth.tum``, else

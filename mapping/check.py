@@ -129,8 +129,11 @@ def check_paths(paths, max_gap_s: float | None = None, images: bool = True, jobs
             problems.append(Problem(str(p), None, "not a survey run (run.toml, frames.csv) or a map (manifest.json), "
                                                   "nor a folder holding any" if p.exists() else "not found"))
     checked = []
-    problems += camera_problems([p for k, p in targets if k == "run"], [p for k, p in targets if k == "map"],
-                                images=images)
+    # ``check RUN MAP``: the runs named on the command line against the maps named there (runs and maps
+    # found inside a folder may be unrelated to each other)
+    named = set(map(Path, paths))
+    problems += camera_problems([p for k, p in targets if k == "run" and p in named],
+                                [p for k, p in targets if k == "map" and p in named], images=images)
     for kind, p in targets:
         if kind == "run":
             found, stats = check_run(p, max_gap_s=max_gap_s, images=images, jobs=jobs, progress=progress)

@@ -100,10 +100,7 @@ def _localise_task(map_root, run_root: str, out: str, entry: str, every: int) ->
 
     blind = entry.endswith("-none")
     method = entry.removesuffix("-none")
-    # the calibration check reads the run's images (a second or two): once per run and oracle is enough --
-    # the signature replays make it, the baselines of the same run would only repeat it
     metrics = localise(map_root, run_root, out, method=method, every=every, progress=False,
-                       camera_check=method == "signatures",
                        oracle="none" if blind else "ins")
     return Path(run_root).name, entry, metrics
 

@@ -9,8 +9,6 @@ and on another place's map.  The figures on the demo world are in docs/integrity
 from __future__ import annotations
 
 import dataclasses
-import json
-import shutil
 
 import numpy as np
 import pytest

@@ -290,9 +290,8 @@ def test_demo_job_shares_features_and_places_with_the_same_outputs(tiny_fast, tm
                           ["orb", "orb-all"], 1, False)
     assert [(r, e) for r, e, _ in res] == [(live.name, "orb"), (live.name, "orb-all")]
     # the second replay (the first one's features and decoded places) equals a replay on its own
-    # the demo checks a run's calibration against its own turns once per run (with its signature replay)
     alone = localise(map_root, live.root, tmp_path / "alone", method="orb-all", every=1, progress=False,
-                     figure=False, camera_check=False)
+                     figure=False)
     _same_outputs(tmp_path / "alone", tmp_path / "job" / live.name / "orb-all")
     assert res[1][2]["localised_fraction"] == alone["localised_fraction"] > 0.5
 
