@@ -70,7 +70,8 @@ default_config = {
                         "sigma": 1.6},
                "orb": {"scaleFactor": 1.2, "nlevels": 8, "edgeThreshold": 31, "firstLevel": 0,
                        "WTA_K": 2, "patchSize": 31, "fastThreshold": 20}},
-    "xfeat": {"top_k": 4096, "min_cossim": 0.82},   # upstream's defaults (Potje et al. 2024)
+    # upstream's defaults (Potje et al. 2024); model None: $SCENESIG_XFEAT_MODEL or ../shared/models
+    "xfeat": {"top_k": 4096, "min_cossim": 0.82, "model": None},
 }
 
 #: Images whose camera moved by more than δ (from the data set's README); left out by default.

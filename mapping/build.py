@@ -563,6 +563,11 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     if len(set(names)) != len(names):
         raise ValueError(f"training runs must have distinct names, got {names}")
     _check_resolutions(train)             # before anything is written: a refused build leaves nothing
+    if "xfeat" in layers_mod.point_plan(cfg["layers"])["extract"]:
+        from scenesig.signatures.xfeat import model_path
+
+        # a missing XFeat model stops the build here, naming where it looked, not in a worker mid-build
+        model_path(((cfg["points"].get("features") or {}).get("xfeat") or {}).get("model"))
     bad = vet_images(train, jobs, progress)
     corrupt = [(run, i, exc) for run, b in zip(train, bad) for i, exc in b]
     if corrupt and not skip_corrupt:

@@ -159,7 +159,7 @@ def _matching_task(map_root: str, world: str, live: list[str], reference: str, p
 #: CPU seconds of one live run's replay per entry, each on its own (demo world, the snow run), and of
 #: the matching experiment: only their order matters, to start the longest jobs first so that the
 #: workers finish together.
-_COST = {"sift-all": 37.0, "sift": 30.0, "xfeat-all": 30.0, "xfeat": 25.0, "orb-all": 14.0, "orb": 9.0,
+_COST = {"xfeat-all": 80.0, "xfeat": 70.0, "sift-all": 37.0, "sift": 30.0, "orb-all": 14.0, "orb": 9.0,
          "signatures": 8.6, "signatures-none": 7.8,
          "hybrid": 14.0, "hybrid-orb": 12.0}
 

@@ -33,10 +33,11 @@ PAPER_DIFFERENCES = [
      "section": "McManus et al. 2015, §3.1 and §4.1",
      "why": "the paper's places are poses of the reference run's INS; by default each place's pose combines "
             "every training run's INS (mapping.georef), which averages out one run's INS error"},
-    {"stage": "build", "key": "point_maps", "paper": ["reference"], "default": ["reference", "all"],
+    {"stage": "build", "key": "layers", "paper": ["signatures", "orb", "sift"], "default": ["signatures"],
      "section": "McManus et al. 2015, §4.2 and §4.3 (the point-feature system)",
-     "why": "the paper's point-feature baseline matches against the map image of each place; by default the map "
-            "also stores a keyframe from every training run for the orb-all / sift-all baselines"},
+     "why": "the paper's maps serve its point-feature baseline too, matched against the map image of each place "
+            "(the reference run's keyframe: the orb and sift layers); by default a map holds what the default "
+            "method needs, and build-map --layers adds the baselines' layers"},
     {"stage": "localise", "key": "method.prior_gating", "paper": False, "default": True,
      "section": "McManus et al. 2015, §3.3.1 and §3.3.2",
      "why": "the paper runs the place's bank of classifiers over the live image (OpenCV's GPU HOG) and uses the "

@@ -51,8 +51,9 @@ def demo_out(tmp_path_factory):
 def test_summary_schema(demo_out):
     s = json.loads((demo_out / "summary.json").read_text())
     assert set(s) >= {"runs", "seconds", "localise_seconds_by_method"} and s["seconds"] > 0
-    # signatures, the four ORB/SIFT baselines (reference and all-runs point maps) and XFeat's
-    assert set(default_config["methods"]) == {"signatures", "orb", "sift", "orb-all", "sift-all", "xfeat-all"}
+    # signatures, the four ORB/SIFT baselines (reference and all-runs point maps), XFeat's and the hybrid
+    assert set(default_config["methods"]) == {"signatures", "orb", "sift", "orb-all", "sift-all", "xfeat-all",
+                                              "hybrid"}
     assert set(s["localise_seconds_by_method"]) == set(METHODS) | {
         f"{m}-none" for m in default_config["no_oracle_methods"]}
     # the map holds the layers the demo runs, and no other

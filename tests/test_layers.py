@@ -80,3 +80,25 @@ def test_cli_refuses_a_missing_layer_and_bad_layer_names(tmp_path, capsys):
     assert main(["build-map", str(tmp_path / "run"), "--reference", str(tmp_path / "run"), "--out",
                  str(tmp_path / "m2"), "--layers", "orb,nope"]) == 2
     assert "unknown map layer(s) nope" in capsys.readouterr().err
+
+
+def test_build_with_an_xfeat_layer_and_no_model_stops_before_writing(tmp_path, monkeypatch):
+    from scenesig.mapping.build import build_map
+    from scenesig.signatures.xfeat import ModelNotFoundError
+
+    from conftest import make_run
+
+    run, _ = make_run(n_frames=4)
+    monkeypatch.setenv("SCENESIG_XFEAT_MODEL", str(tmp_path / "absent.onnx"))
+    with pytest.raises(ModelNotFoundError, match="absent.onnx"):
+        build_map([run], run, tmp_path / "m", progress=False, config={"layers": ["signatures", "xfeat"]})
+    assert not (tmp_path / "m").exists()
+
+
+def test_add_layers_refuses_all_run_layers_and_unknown_names(tmp_path, capsys):
+    store = _store(tmp_path / "m", {})
+    for layers_arg, msg in (("sift-all", "need every training run"), ("bogus", "unknown map layer"),
+                            ("signatures", "no point-feature layer")):
+        assert main(["map", "add-layers", str(store.root), "--reference", str(tmp_path / "run"),
+                     "--layers", layers_arg]) == 2
+        assert msg in capsys.readouterr().err
