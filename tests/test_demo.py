@@ -23,8 +23,8 @@ def demo_out(tmp_path_factory):
 def test_summary_schema(demo_out):
     s = json.loads((demo_out / "summary.json").read_text())
     assert set(s) >= {"runs", "seconds", "localise_seconds_by_method"} and s["seconds"] > 0
-    # signatures and the four point-feature baselines (reference and all-runs point maps)
-    assert set(default_config["methods"]) == {"signatures", "orb", "sift", "orb-all", "sift-all"}
+    # signatures, the four point-feature baselines (reference and all-runs point maps) and the hybrid
+    assert set(default_config["methods"]) == {"signatures", "orb", "sift", "orb-all", "sift-all", "hybrid"}
     assert set(s["localise_seconds_by_method"]) == set(default_config["methods"]) | {
         f"{m}-none" for m in default_config["no_oracle_methods"]}
     assert [r["conditions"] for r in s["runs"]] == [[c] for c in default_config["live"]]
@@ -46,6 +46,8 @@ def test_signatures_localise_every_held_out_run(demo_out):
     for r in s["runs"]:
         m = r["methods"]["signatures"]
         assert m["failures"] == 0, (r["run"], m["failures"])
+        # the hybrid keeps the signatures' robustness
+        assert r["methods"]["hybrid"]["failures"] == 0, (r["run"], r["methods"]["hybrid"]["failures"])
         assert m["blind_fraction_over_20m"] <= 0.01, (r["run"], m["blind_fraction_over_20m"])
         # and without any INS/GPS: found from the map, never wrongly
         m = r["methods"]["signatures-none"]
