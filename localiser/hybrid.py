@@ -28,18 +28,22 @@ covariance, the same Huber kernel on every Mahalanobis norm and the same χ²(2)
 3. **signatures as the gate when points are strong** -- with at least ``point_dominant_inliers``
    consensus inliers (chosen on training runs: from that count on, point fixes were more accurate
    than signature fixes), the signatures' covariance is inflated by ``signature_gate_scale``² so the
-   point-feature accuracy is kept while the signatures still take part in the gating: the joint pose
-   must keep at least ``min_signature_agreement`` of the signatures that agree with the
-   signature-only pose (counted under the calibrated signature noise), or the points are dropped and
-   the signature-only solution is used (``point_rejection`` in the measurement's extra).
+   point-feature accuracy is kept while the signatures still take part in the gating: where the
+   signatures support a pose of their own, the joint pose must be one their solver would accept too
+   (at least ``min_inliers`` and ``min_inlier_fraction`` of the detections within the χ² gate, counted
+   at the joint pose under the calibrated signature noise), or the points are dropped and the
+   signature-only solution is used (``point_rejection`` in the measurement's extra).
 
-With no point consensus the answer is the signature method's, bit for bit; with too few signature
-detections to solve, the point method's.  ``Measurement.extra`` carries ``signature_inliers`` and
+With no point consensus the answer's pose is the signature method's, bit for bit; with too few
+signature detections to solve, the point method's.  Every answer reaches the pose graph with its
+calibrated covariance (a single-type answer's covariance times its type's scale squared), so the graph
+weighs signature-only, point-only and joint fixes on one scale.  ``Measurement.extra`` carries ``signature_inliers`` and
 ``point_inliers`` (``frames.csv``'s columns of the same names) and ``hybrid_mode`` (``signatures``,
 ``points``, ``joint``).
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -75,8 +79,10 @@ default_config = {
     "point_min_inliers": 12,     # consensus needed before points enter (the point method's acceptance)
     "point_dominant_inliers": 12,  # from this consensus on the signatures act as the gate (see above)
     "signature_gate_scale": 10.0,  # σ inflation of the signatures then: 1 % of their information
-    "min_signature_agreement": 0.5,  # share of the signature-only inliers the joint pose must keep
     "signature_min_detections": 4,   # fewer: no signature part (the point method answers alone)
+    # the point consensus's RANSAC pose must pass the prior's χ²(6) gate before the points enter (False:
+    # only the joint solve's own prior check after refinement, as the point method does)
+    "consensus_prior_gate": True,
     "solver": {},                # overrides of localiser.solver.default_config for the joint solve
 }
 
@@ -186,8 +192,18 @@ class HybridResult:
     dominant: bool = False
 
 
+def _calibrated(res: SolveResult | None, sigma_scale: float) -> SolveResult | None:
+    """A single-type answer with its noise model calibrated like the joint solve's: the pose unchanged (the
+    signature or point method's, bit for bit), its covariance × ``sigma_scale``² and its information ÷ it,
+    so every fix the pose graph gets from the hybrid is weighted on the same calibrated scale."""
+    if res is None or res.covariance is None or sigma_scale == 1.0:
+        return res
+    k = float(sigma_scale) ** 2
+    return dataclasses.replace(res, covariance=res.covariance * k, information_detections=res.information_detections / k)
+
+
 def _point_consensus(pts: PointObservation, T_prior, P_prior, camera, T_vehicle_camera, need: int,
-                     min_matches: int, pnp: dict, prior_gate_chi2: float):
+                     min_matches: int, pnp: dict, prior_gate_chi2: float | None):
     """``(T_place_vehicle, inliers)`` of the point matches' robust absolute pose, or None (too few
     matches or consensus inliers, or a pose inconsistent with the motion prior)."""
     if len(pts) < max(min_matches, need, 4):
@@ -196,7 +212,7 @@ def _point_consensus(pts: PointObservation, T_prior, P_prior, camera, T_vehicle_
     if not ap.ok or ap.n_inliers < need:
         return None
     T = invert(np.asarray(T_vehicle_camera, float) @ ap.T_cam_place)
-    if _prior_chi2(T, T_prior, P_prior) > prior_gate_chi2:
+    if prior_gate_chi2 is not None and _prior_chi2(T, T_prior, P_prior) > prior_gate_chi2:
         return None
     return T, ap.inliers
 
@@ -223,13 +239,14 @@ def fuse(sig: Observation, pts: PointObservation, T_prior: np.ndarray, P_prior: 
     j_cfg = merge_settings(solver_default, {"min_inlier_fraction": 0.0, **cfg["solver"]}, "solver")
     pnp = {k: v for k, v in {**absolute_pose_default, **p_cfg["pnp"]}.items() if k in absolute_pose_default}
     n, m = len(sig), len(pts)
+    s_sig, s_pt = float(cfg["signature_sigma_scale"]), float(cfg["point_sigma_scale"])
 
     def signatures_alone(rejection):
         if n < s_cfg["min_inliers"]:
             return HybridResult(None, "too_few_detections", "signatures", 0, 0, rejection)
         r = solve(sig.uv, sig.R, sig.landmarks, T_prior, P_prior, camera, T_vehicle_camera,
                   landmark_cov=sig.landmark_cov, config=s_cfg)
-        return HybridResult(r, r.reason, "signatures", r.n_inliers, 0, rejection)
+        return HybridResult(_calibrated(r, s_sig), r.reason, "signatures", r.n_inliers, 0, rejection)
 
     if n < int(cfg["signature_min_detections"]):
         # no signature part: the point method's answer
@@ -237,13 +254,13 @@ def fuse(sig: Observation, pts: PointObservation, T_prior: np.ndarray, P_prior: 
             return HybridResult(None, "too_few_matches", "points")
         r = solve_pnp_prior(pts.uv, pts.xyz, camera, T_vehicle_camera, T_prior, P_prior, R=pts.R, points_cov=pts.cov,
                             config=p_cfg["solver"] or None, pnp_config=p_cfg["pnp"] or None)
-        return HybridResult(r, r.reason, "points", 0, r.n_inliers)
+        return HybridResult(_calibrated(r, s_pt), r.reason, "points", 0, r.n_inliers)
     cons = _point_consensus(pts, T_prior, P_prior, camera, T_vehicle_camera, int(cfg["point_min_inliers"]),
-                            int(p_cfg["min_matches"]), pnp, j_cfg["prior_gate_chi2"])
+                            int(p_cfg["min_matches"]), pnp,
+                            j_cfg["prior_gate_chi2"] if cfg["consensus_prior_gate"] else None)
     if cons is None:
         return signatures_alone("no_consensus")
     T_pnp, p_in = cons
-    s_sig, s_pt = float(cfg["signature_sigma_scale"]), float(cfg["point_sigma_scale"])
     dominant = int(p_in.sum()) >= int(cfg["point_dominant_inliers"])
     s_joint = s_sig * (float(cfg["signature_gate_scale"]) if dominant else 1.0)
     # the signature-only solution: the pose the points must not drag away
@@ -262,7 +279,10 @@ def fuse(sig: Observation, pts: PointObservation, T_prior: np.ndarray, P_prior: 
         sig_ok = k_sig >= s_cfg["min_inliers"] and k_sig >= s_cfg["min_inlier_fraction"] * n
         if not (k_pt >= int(cfg["point_min_inliers"]) or sig_ok):
             reason = "too_few_inliers"
-    if start is not None and k_sig < float(cfg["min_signature_agreement"]) * int(start.sum()):
+    # the gate: where the signatures support a pose of their own, the joint pose must be one they would
+    # accept too -- their own acceptance rule (at least min_inliers, and min_inlier_fraction of the
+    # detections) counted at the joint pose under their calibrated noise
+    if start is not None and k_sig < max(s_cfg["min_inliers"], s_cfg["min_inlier_fraction"] * n):
         alone.rejection = "disagrees_with_signatures"
         return alone
     if reason is not None:
@@ -305,8 +325,8 @@ class HybridLocaliser(WeakLocaliser):
                 "keyframes": ("the reference run's keyframe per place" if self.point_map == "reference" else
                               "a keyframe per training run; the one with the most matches"),
                 **{k: c[k] for k in ("signature_sigma_scale", "point_sigma_scale", "point_min_inliers",
-                                     "point_dominant_inliers", "signature_gate_scale", "min_signature_agreement",
-                                     "signature_min_detections")},
+                                     "point_dominant_inliers", "signature_gate_scale", "signature_min_detections",
+                                     "consensus_prior_gate")},
                 "joint_solver": dict(self.solver_config),
                 "signatures": self.signatures.method_config(), "points": self.points.method_config()}
 

@@ -27,7 +27,8 @@ and counted (``frames_corrupt``, ``corrupt_frames``).
 Outputs in DIR, whether or not the run has truth: ``trajectory.tum`` (the estimate at every frame time;
 evo reads it), ``covariances.csv`` (each pose's planar covariance, :mod:`scenesig.localiser.uncertainty`),
 ``frames.csv`` (time, place, detections, inliers, localised, lateral_error, heading_error,
-distance_since_localisation, the 95 % bounds and integrity_alert; the errors NaN without truth), ``metrics.json`` (see
+distance_since_localisation, the 95 % bounds, integrity_alert, and signature_inliers, point_inliers -- which
+measurement types the solver kept; the errors NaN without truth), ``metrics.json`` (see
 :func:`compute_metrics`) and ``trajectory.png``
 (estimate, truth and INS/GPS on the map; lateral error over distance with the stretches within 10 m
 of a localisation shaded and the resets marked).

@@ -80,6 +80,8 @@ def test_signatures_localise_every_held_out_run(demo_out):
     for r in s["runs"]:
         m = r["methods"]["signatures"]
         assert m["failures"] == 0, (r["run"], m["failures"])
+        # the hybrid keeps the signatures' robustness
+        assert r["methods"]["hybrid"]["failures"] == 0, (r["run"], r["methods"]["hybrid"]["failures"])
         assert m["blind_fraction_over_20m"] <= 0.01, (r["run"], m["blind_fraction_over_20m"])
         # and without any INS/GPS: found from the map, never wrongly
         m = r["methods"]["signatures-none"]
