@@ -103,7 +103,7 @@ def test_update_changes_only_the_weak_places(world, reference_update):
 
 
 def _update_process(root: Path, loc: Path) -> subprocess.Popen:
-    code = ("import sys; from localiser.outputs import read_localisation; from mapping.update import update_map; "
+    code = ("import sys; from scenesig.localiser.outputs import read_localisation; from scenesig.mapping.update import update_map; "
             "update_map(sys.argv[1], [read_localisation(sys.argv[2])], progress=False)")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.Popen([sys.executable, "-c", code, str(root), str(loc)], env=env, cwd=ROOT)
