@@ -29,7 +29,9 @@ measure generalisation.  Tile i is in fold i mod K; for each fold every method's
 among :data:`SEARCH` on ``--search-trials`` trials over the other folds' tiles (:func:`choose`: the
 highest success, ties to the faster), the MRSM-CC landmark library learns from those tiles only, and
 the fold's own tiles -- never seen by the search -- give the reported trials (k = f, f + K, ...).
-The JSON adds ``folds`` (tiles, every candidate's training figures, the chosen settings).
+The JSON adds ``folds`` (tiles, every candidate's training figures, the chosen settings).  Where
+candidates tie on training success the faster wins, so on a loaded machine the chosen settings (not
+the trials) may differ between runs of one seed.
 
 Run: ``scenesig aerial bench TILES_DIR --methods mrsmcc,sism,sift,orb,signatures --trials 200
 --seed 1 --json out/aerial.json --figure out/aerial``.

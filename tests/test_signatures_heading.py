@@ -79,3 +79,33 @@ def test_one_configuration_with_a_rule_on_training_data_only():
     assert not one["calibrated"] and one["min_prob"] == 0.0 and one["prob_weight"] == 0.0
     assert {k: v for k, v in one.items() if k not in ("min_prob", "prob_weight", "calibrated")} == \
         {k: v for k, v in many.items() if k not in ("min_prob", "prob_weight", "calibrated")}
+
+
+def test_lopo_revote_is_the_bench_vote():
+    """benchmarks.heading_lopo re-weights stored detections: at the configured spread_sigma_px it
+    must give exactly the estimate the heading bench voted, and another sigma may change it."""
+    from scenesig.benchmarks.heading_lopo import revote
+    from scenesig.signatures import heading
+
+    rng = np.random.default_rng(3)
+    n, top = 40, 3
+
+    class Det:
+        def __init__(self, x, prob):
+            self.x, self.prob = x, prob
+
+        def boxes(self, k):
+            return np.zeros((len(self.x), 4))
+
+    scale = 0.5
+    truth = 30.0
+    map_x = rng.uniform(20, 480, (n, 1))
+    live_x = map_x + truth * scale + rng.normal(0, 2, (n, top))
+    live_x[: n // 3] = rng.uniform(0, 500, (n // 3, top))            # a third vote at random
+    det_map = Det(map_x, rng.uniform(0.4, 1.0, (n, 1)))
+    det_live = Det(live_x, rng.uniform(0.4, 1.0, (n, top)))
+    spread = np.stack([rng.uniform(0, 30, n), rng.uniform(0, 30, n)], axis=1)
+    cfg = heading.bank_config(dict(heading.default_config), 11)
+    rec = heading._vote_pair(det_map, det_live, cfg, scale, spread)
+    assert revote(rec, cfg, cfg["spread_sigma_px"]) == rec.estimate
+    assert abs(rec.estimate - truth) < 5
