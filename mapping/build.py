@@ -566,8 +566,13 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     if "xfeat" in layers_mod.point_plan(cfg["layers"])["extract"]:
         from scenesig.signatures.xfeat import model_path
 
-        # a missing XFeat model stops the build here, naming where it looked, not in a worker mid-build
-        model_path(((cfg["points"].get("features") or {}).get("xfeat") or {}).get("model"))
+        # a missing XFeat model stops the build here, naming where it looked, not in a worker mid-build;
+        # the workers get the file by name (a pool started earlier, or a Dask worker, has another
+        # environment), and the manifest records which file built the layer
+        found = model_path(((cfg["points"].get("features") or {}).get("xfeat") or {}).get("model"))
+        features = dict(cfg["points"].get("features") or {})
+        features["xfeat"] = {**(features.get("xfeat") or {}), "model": str(found)}
+        cfg["points"] = {**cfg["points"], "features": features}
     bad = vet_images(train, jobs, progress)
     corrupt = [(run, i, exc) for run, b in zip(train, bad) for i, exc in b]
     if corrupt and not skip_corrupt:

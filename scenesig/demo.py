@@ -119,7 +119,7 @@ def _one_thread() -> None:
 
 
 def _localise_group(map_root: str, world: str, out: str, run: str, entries: list[str], every: int,
-                    pooled: bool) -> list[tuple[str, str, dict]]:
+                    pooled: bool, env: dict | None = None) -> list[tuple[str, str, dict]]:
     """One run's localisations with the given entries, one after the other in one process (a
     module-level function so joblib can ship it to a worker).
 
@@ -134,6 +134,8 @@ def _localise_group(map_root: str, world: str, out: str, run: str, entries: list
 
     if pooled:
         _one_thread()
+    # the parent's choices a reused worker process was not started with (the XFeat model file)
+    os.environ.update(env or {})
     store = MapStore.open(map_root)
     if len(entries) > 1:             # every place the run passes stays decoded for the next replay
         store = MapStore.open(map_root, cache_size=len(store))
@@ -227,7 +229,13 @@ def localise_live_runs(map_root, world, out, live: list[str], reference: str, en
             todo.append((n, m))
     pooled = jobs > 1
     jobs_todo = localise_groups(todo)
-    calls = [delayed(_localise_group)(map_root, world, str(out), n, group, every, pooled) for n, group in jobs_todo]
+    env = None
+    if any(e.startswith("xfeat") for e in entries):
+        from scenesig.signatures.xfeat import ENV_VAR, model_path
+
+        env = {ENV_VAR: str(model_path())}
+    calls = [delayed(_localise_group)(map_root, world, str(out), n, group, every, pooled, env)
+             for n, group in jobs_todo]
     at = next((k for k, (_, group) in enumerate(jobs_todo) if _cost(group) < _MATCHING_COST), len(calls))
     calls.insert(at, delayed(_matching_task)(map_root, world, list(live), reference, pooled))
     bar = tqdm(total=len(todo), desc="localise", unit="run", disable=not progress)

@@ -102,9 +102,13 @@ def test_update_changes_only_the_weak_places(world, reference_update):
     assert MapStore.open(root, verify=True).generation == 0
 
 
-def _update_process(root: Path, loc: Path) -> subprocess.Popen:
-    code = ("import sys; from scenesig.localiser.outputs import read_localisation; from scenesig.mapping.update import update_map; "
-            "update_map(sys.argv[1], [read_localisation(sys.argv[2])], progress=False)")
+def _update_process(root: Path, loc: Path, pause_s: float = 0.0) -> subprocess.Popen:
+    """``update_map`` in its own process; ``pause_s`` after each journalled place, so a kill lands between
+    places however fast the machine is (a tiny map's update can otherwise finish between two polls)."""
+    code = ("import sys, time; from scenesig.localiser.outputs import read_localisation; "
+            "import scenesig.mapping.update as U; real = U._append; "
+            f"U._append = lambda p, o: (real(p, o), time.sleep({float(pause_s)})); "
+            "U.update_map(sys.argv[1], [read_localisation(sys.argv[2])], progress=False)")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.Popen([sys.executable, "-c", code, str(root), str(loc)], env=env, cwd=ROOT)
 
@@ -134,7 +138,7 @@ def killed_and_resumed(world, reference_update, tmp_path_factory):
 
     t = threading.Thread(target=reader, daemon=True)
     t.start()
-    proc = _update_process(work, loc)
+    proc = _update_process(work, loc, pause_s=5.0)
     journal = work / "update.jsonl"
     deadline = time.time() + 600
     while proc.poll() is None and time.time() < deadline:
