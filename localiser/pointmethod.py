@@ -110,7 +110,7 @@ def resolve_config(config: dict | None = None) -> dict:
     from scenesig.signatures.pointfeatures import default_config as features_default, gms_default_config
 
     cfg = _merge(config)
-    return {**cfg, "features": merge_settings(features_default, cfg["features"], "point-feature"),
+    return {**cfg, "features": merge_settings(features_default, cfg["features"], "point-feature", open=("xfeat",)),
             "gms": merge_settings(gms_default_config, cfg["gms"], "GMS"),
             "solver": merge_settings(solver_default, cfg["solver"], "solver"),
             "pnp": merge_settings(default_pnp_config, cfg["pnp"], "PnP")}

@@ -100,7 +100,7 @@ def _merge(config: dict | None) -> dict:
 def resolve_config(config: dict | None = None) -> dict:
     """Every point-map setting, its features' included: ``config`` (overrides of :data:`default_config`)."""
     cfg = _merge(config)
-    cfg["features"] = merge_settings(features_default, cfg["features"], "point-feature")
+    cfg["features"] = merge_settings(features_default, cfg["features"], "point-feature", open=("xfeat",))
     return cfg
 
 
@@ -118,7 +118,7 @@ def keypoint_sigma(features: PointFeatures, pixel_sigma: float = 1.0, config: di
     """
     oct_ = np.asarray(features.octave, dtype=np.int64)
     if features.kind == "orb":
-        f = float(merge_settings(features_default, config, "point-feature")["orb"]["scaleFactor"])
+        f = float(merge_settings(features_default, config, "point-feature", open=("xfeat",))["orb"]["scaleFactor"])
         scale = f ** np.clip(oct_, 0, None)
     else:
         o = oct_ & 255
