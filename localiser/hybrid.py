@@ -5,7 +5,7 @@
 motion prior predicts (:func:`scenesig.localiser.detector.search_windows`, for both types):
 
 * **signature detections** -- the place's bank fired in the live image, exactly as
-  :class:`scenesig.localiser.pipeline.SignatureLocaliser` does (detection covariance of eq. 5);
+  :class:`scenesig.localiser.signature_method.SignatureLocaliser` does (detection covariance of eq. 5);
 * **point matches** -- the live image's ORB / SIFT features matched to the map's point landmarks,
   exactly as :class:`scenesig.localiser.pointmethod.PointLocaliser` does (keypoint noise ``pixel_sigma`` times
   the keypoint's octave scale).  Which keyframes: ``hybrid`` and ``hybrid-orb`` use the reference
@@ -56,8 +56,9 @@ from scenesig.surveys.settings import merge_settings
 from .absolute_pose import default_config as absolute_pose_default
 from .absolute_pose import estimate as estimate_absolute_pose
 from .detector import Observation
-from .pipeline import Measurement, MotionPrior, SignatureLocaliser, WeakLocaliser, register_method
+from .methods import Measurement, MotionPrior, WeakLocaliser, register_method
 from .pointmethod import LiveFrame, PointLocaliser, PointObservation
+from .signature_method import SignatureLocaliser
 from .solver import SolveResult, _Problem, _solve, pose_log, solve, solve_pnp_prior
 from .solver import default_config as solver_default
 
@@ -292,7 +293,7 @@ def fuse(sig: Observation, pts: PointObservation, T_prior: np.ndarray, P_prior: 
 
 
 class HybridLocaliser(WeakLocaliser):
-    """Scene signatures and point features in one eq. 10 solve (a :class:`scenesig.localiser.pipeline.WeakLocaliser`).
+    """Scene signatures and point features in one eq. 10 solve (a :class:`scenesig.localiser.methods.WeakLocaliser`).
 
     Parameters
     ----------

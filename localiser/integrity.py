@@ -106,8 +106,8 @@ class Alert:
 
 
 def frame_stats(t: float, place: int, prior, m) -> FrameStats:
-    """:class:`FrameStats` of a measurement ``m`` (:class:`scenesig.localiser.pipeline.Measurement`) made with the
-    motion prior ``prior`` (:class:`scenesig.localiser.pipeline.MotionPrior`)."""
+    """:class:`FrameStats` of a measurement ``m`` (:class:`scenesig.localiser.methods.Measurement`) made with the
+    motion prior ``prior`` (:class:`scenesig.localiser.methods.MotionPrior`)."""
     c = m.constraint
     ex = m.extra or {}
     searched = int(ex.get("searched", 0) or 0)

@@ -1,25 +1,27 @@
-"""The online localisation pipeline (McManus et al. 2015, §3.3, Fig. 6): weak localisers and the localiser block.
+"""The online localisation pipeline (McManus et al. 2015, §3.3, Fig. 6): the localiser block.
 
 Three blocks, as in the paper's Fig. 6:
 
 * **Detector** -- finds a method's measurements in a live image for the current place
-  (:meth:`WeakLocaliser.detect`; for scene signatures :class:`scenesig.localiser.detector.Detector`);
+  (:meth:`scenesig.localiser.methods.WeakLocaliser.detect`; for scene signatures
+  :class:`scenesig.localiser.detector.Detector`);
 * **Solver** -- turns them into a localisation constraint with covariance, or none
-  (:meth:`WeakLocaliser.solve`; for scene signatures the eq. 10 solver of :mod:`scenesig.localiser.solver`);
-* **Localiser** (:class:`Localiser`) -- integrates odometry at its full rate into a sliding-window
+  (:meth:`scenesig.localiser.methods.WeakLocaliser.solve`; for scene signatures the eq. 10 solver of
+  :mod:`scenesig.localiser.solver`);
+* **Localiser** (:class:`Localiser`, this module) -- integrates odometry at its full rate into a sliding-window
   pose graph (:class:`scenesig.localiser.posegraph.PoseGraph`), adds the localisation constraints, snaps every
   estimate to SE(2) on the local plane of the two nearest map places (:class:`scenesig.localiser.se2.PlaneSnapper`),
   chooses the nearest place (position and heading), hands the detector and solver their motion prior,
   and applies the failure rule: more than 20 m on dead reckoning since the last localisation -> reset
   from the oracle (the run's INS/GPS) and count a failure.
 
-A *weak localiser* (McManus et al. 2015, §3.3.1) is any method that, given a live image, a place and a motion prior,
-returns a localisation constraint or nothing.  :class:`WeakLocaliser` is that interface, split into
-``detect`` (image -> observation, the detector thread) and ``solve`` (observation -> :class:`Measurement`,
-the solver thread) so the real-time replay can run them concurrently; ``measure`` chains them.
-Scene signatures are :class:`SignatureLocaliser`; point features (ORB / SIFT) plug in as
-another implementation registered with :func:`register_method`, and everything else (replay,
-failure rule, outputs, metrics) is shared.
+The weak-localiser interface (:class:`MotionPrior`, :class:`Measurement`, :class:`WeakLocaliser`) and the
+method registry (:func:`register_method`, :func:`available_methods`, :func:`make_method`) live in
+:mod:`scenesig.localiser.methods`; the scene-signature method (:class:`SignatureLocaliser`,
+:data:`signature_default_config`) in :mod:`scenesig.localiser.signature_method`.  This module re-exports
+them, so imports from ``scenesig.localiser.pipeline`` keep working; point features (ORB / SIFT / XFeat) and the
+hybrid plug in as other registered implementations, and everything else (replay, failure rule, outputs,
+metrics) is shared.
 
 Driving the blocks in time order (deterministic or real-time) is :mod:`scenesig.localiser.replay`'s job.
 """
@@ -28,23 +30,21 @@ from __future__ import annotations
 import bisect
 import threading
 import time
-from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
 from scenesig.mapping.store import MapStore
-from scenesig.signatures.hog import ScaledImages, load_compiled
-from scenesig.surveys.geometry import Camera, invert
+from scenesig.surveys.geometry import invert
 from scenesig.surveys.settings import merge_settings
 
-from . import _solver_kernel
-from .detector import Detector, Observation
 from .failure import FAILURE_DISTANCE_M, is_failure
+# The interfaces, the registry and the scene-signature method, re-exported (they lived here before).
+from .methods import Measurement, MotionPrior, WeakLocaliser, available_methods, make_method, register_method
 from .posegraph import PoseGraph
 from .se2 import PlaneSnapper
-from .solver import LocalisationConstraint, solve
-from .solver import default_config as solver_default
+from .signature_method import SignatureLocaliser, signature_default_config
+from .solver import LocalisationConstraint
 
 __all__ = ["default_config", "signature_default_config", "MotionPrior", "Measurement", "WeakLocaliser", "SignatureLocaliser", "Localiser",
            "register_method", "make_method", "available_methods", "odometry_covariance"]
@@ -72,240 +72,10 @@ default_config = {
 }
 
 
-#: Settings of the scene-signature method (:class:`SignatureLocaliser`): ``prior_gating`` False searches
-#: the whole image on every frame instead of the windows around the projections the motion prior predicts.
-signature_default_config = {
-    "detector": {},                  # overrides of localiser.detector.default_config
-    "solver": {},                    # overrides of localiser.solver.default_config
-    "prior_gating": True,
-}
-
-
 def odometry_covariance(T_increment: np.ndarray, sigma_per_sqrt_m, sigma_floor) -> np.ndarray:
     """6x6 covariance of one odometry increment: ``diag(σ_d² · d + σ_0²)``, ``d`` its length (m)."""
     d = float(np.linalg.norm(np.asarray(T_increment)[:3, 3]))
     return np.diag(np.asarray(sigma_per_sqrt_m, float) ** 2 * d + np.asarray(sigma_floor, float) ** 2)
-
-
-# ------------------------------------------------------------------------------------------------
-# data passed between the blocks
-# ------------------------------------------------------------------------------------------------
-@dataclass
-class MotionPrior:
-    """What the localiser tells the detector and solver for one frame.
-
-    Attributes
-    ----------
-    t : time of the frame.
-    T_world_vehicle : (4,4) snapped estimate at ``t`` (the motion prior T̂).
-    covariance : (6,6) its covariance P_x (GTSAM Pose3 convention, vehicle frame), floored.
-    place : the nearest place (index); ``T_world_place`` its pose.
-    next_place : the place ahead (to prefetch), or None.
-    lost : True when the estimate is not good enough to search around predicted projections.
-    distance_since_localisation : odometry distance since the last localisation or reset (m).
-    max_classifiers : global localisation's verification budget per place (methods may ignore it).
-    """
-
-    t: float
-    T_world_vehicle: np.ndarray
-    covariance: np.ndarray
-    place: int
-    T_world_place: np.ndarray
-    next_place: int | None
-    lost: bool
-    distance_since_localisation: float
-    max_classifiers: int | None = None   # a whole-image search may run only this many (the best) classifiers
-
-    @property
-    def T_place_vehicle(self) -> np.ndarray:
-        """The prior in the place frame (what the solver and the detector windows use)."""
-        return invert(self.T_world_place) @ self.T_world_vehicle
-
-
-@dataclass
-class Measurement:
-    """A weak localiser's answer for one frame: a constraint or none, with counts and timings."""
-
-    constraint: LocalisationConstraint | None
-    detections: int = 0
-    inliers: int = 0
-    reason: str | None = None
-    ms_detect: float = 0.0
-    ms_solve: float = 0.0
-    solved: bool = False          # the solver ran (enough detections to try)
-    extra: dict = field(default_factory=dict)
-
-    @classmethod
-    def coerce(cls, result) -> "Measurement":
-        """A Measurement from what a method returned: a Measurement, a bare constraint, or None."""
-        if isinstance(result, Measurement):
-            return result
-        if result is None:
-            return cls(None, reason="no_measurement")
-        if isinstance(result, LocalisationConstraint):
-            return cls(result, reason=None, solved=True)
-        raise TypeError(f"a weak localiser must return a Measurement, a LocalisationConstraint or None, "
-                        f"got {type(result).__name__}")
-
-
-# ------------------------------------------------------------------------------------------------
-# the method interface
-# ------------------------------------------------------------------------------------------------
-class WeakLocaliser:
-    """Interface of a weak localiser (McManus et al. 2015, §3.3.1): image + place + motion prior -> constraint or none.
-
-    Implement either :meth:`measure` alone (a single-stage method: then :meth:`detect` does all the
-    work and :meth:`solve` passes its answer on), or :meth:`detect` and :meth:`solve` (two stages,
-    which the real-time replay runs in the detector and solver threads).
-
-    Attributes
-    ----------
-    name : method name (``metrics.json``'s ``method``).
-    color : True if the method wants BGR images, False for gray.
-    """
-
-    name = "weak"
-    color = False
-
-    def method_config(self) -> dict:
-        """The settings that produce this method's results (``metrics.json``'s ``method_config``)."""
-        return {"method": self.name}
-
-    def prefetch(self, place: int | None) -> None:
-        """Prepare a place that is coming up (e.g. decode its bank in the background)."""
-
-    def prepare(self, image: np.ndarray):
-        """The part of detection that needs the image only -- neither the place nor the prior.
-
-        The replay may call it on another thread, ahead of :meth:`detect` (e.g. point-feature
-        extraction for the next frame while the current one is solved), and then passes its result
-        to :meth:`detect` in place of the image; :meth:`detect` must accept both.  Default: nothing
-        to do (the image itself).
-        """
-        return image
-
-    def detect(self, image: np.ndarray, place: int, prior: MotionPrior):
-        """Detector stage: image -> observation (anything :meth:`solve` understands)."""
-        if type(self).measure is WeakLocaliser.measure:
-            raise NotImplementedError(f"{type(self).__name__} must implement measure() or detect() and solve()")
-        return self.measure(image, place, prior)
-
-    def solve(self, observation, place: int, prior: MotionPrior) -> Measurement | LocalisationConstraint | None:
-        """Solver stage: observation -> :class:`Measurement` (a single-stage method's detect already answered)."""
-        return observation
-
-    def measure(self, image: np.ndarray, place: int, prior: MotionPrior) -> Measurement | LocalisationConstraint | None:
-        """Both stages: a localisation constraint (in a :class:`Measurement`), or None."""
-        if type(self).detect is WeakLocaliser.detect:
-            raise NotImplementedError(f"{type(self).__name__} must implement measure() or detect() and solve()")
-        return self.solve(self.detect(image, place, prior), place, prior)
-
-    def close(self) -> None:
-        """Release threads and caches."""
-
-
-class SignatureLocaliser(WeakLocaliser):
-    """Scene signatures: the place's bank fired in the image (detector), eq. 10 (solver).
-
-    Parameters
-    ----------
-    store : the map.
-    camera, T_vehicle_camera : the live camera.
-    config : ``{"detector": {...}, "solver": {...}, "prior_gating": bool}``: overrides of
-        :data:`scenesig.localiser.detector.default_config` and :data:`scenesig.localiser.solver.default_config`;
-        ``prior_gating`` False searches the whole image on every frame instead of the windows
-        around the projections the motion prior predicts.
-    """
-
-    name = "signatures"
-
-    def __init__(self, store: MapStore, camera: Camera, T_vehicle_camera: np.ndarray, config: dict | None = None):
-        # The detector and the solver check their own sub-dicts (their default_config).
-        cfg = merge_settings(signature_default_config, config, "signature method", open=("detector", "solver"))
-        self.prior_gating = bool(cfg["prior_gating"])
-        self.store = store
-        self.camera = camera
-        self.T_vehicle_camera = np.asarray(T_vehicle_camera, dtype=float)
-        self.solver_config = merge_settings(solver_default, cfg["solver"], "solver")
-        self.detector = Detector(store, camera, T_vehicle_camera, cfg["detector"])
-        self.color = False
-        self._hog = None
-        load_compiled()                # before the replay's clock starts, like opening the map
-        if self.solver_config["compiled"]:
-            _solver_kernel.warm_up()
-        # The banks' HOG parameters decide gray or colour input (all places share them).
-        for idx in store.places:
-            lp = self.detector.place(idx)
-            if len(lp.bank):
-                self._hog = dict(lp.bank.hog)
-                self.color = bool(self._hog.get("color", False))
-                break
-
-    def prefetch(self, place):
-        self.detector.prefetch(place)
-
-    def method_config(self) -> dict:
-        return {"method": self.name, "family": "scene signatures (McManus et al. 2015)",
-                "map": "one classifier bank per place, mined from every training run",
-                "prior_gating": self.prior_gating, "detector": dict(self.detector.config),
-                "estimator": "robust Levenberg-Marquardt with the motion prior (eq. 10), Huber",
-                "solver": dict(self.solver_config)}
-
-    def prepare(self, image):
-        """The image with its HOG pyramid levels' resizes (:class:`scenesig.signatures.hog.ScaledImages`): they
-        need neither the place nor the prior, so a replay makes them for the next frame on another
-        core; detection then only crops them, with the same features."""
-        if self._hog is None:
-            return image
-        return ScaledImages.for_pyramid(image, self._hog)
-
-    def detect(self, image, place, prior: MotionPrior) -> Observation:
-        return self.detector.detect(image, place, prior.T_place_vehicle, prior.covariance,
-                                    whole_image=prior.lost or not self.prior_gating,
-                                    max_classifiers=prior.max_classifiers)
-
-    def solve(self, obs: Observation, place, prior: MotionPrior) -> Measurement:
-        n = len(obs)
-        if n < self.solver_config["min_inliers"]:
-            return Measurement(None, n, 0, "too_few_detections", obs.ms, 0.0, False,
-                               {"whole_image": obs.whole_image, "searched": obs.searched, "signature_inliers": 0})
-        res = solve(obs.uv, obs.R, obs.landmarks, prior.T_place_vehicle, prior.covariance, self.camera,
-                    self.T_vehicle_camera, landmark_cov=obs.landmark_cov, config=self.solver_config)
-        c = res.constraint(self.store.places[place].T_world_place)
-        # the inliers' squared Mahalanobis residuals: the integrity monitor's residual test
-        r2 = float(np.sum(res.mahalanobis_sq[res.inliers])) if res.n_inliers else float("nan")
-        return Measurement(c, n, res.n_inliers, res.reason, obs.ms, res.ms, True,
-                           {"whole_image": obs.whole_image, "searched": obs.searched, "residual_chi2": r2,
-                            "signature_inliers": res.n_inliers})
-
-    def close(self):
-        self.detector.close()
-
-
-_METHODS: dict[str, Callable] = {"signatures": SignatureLocaliser}
-# Methods provided by other modules, imported on first use (they call register_method).
-_LAZY = {name: "scenesig.localiser.pointmethod" for name in ("orb", "sift", "xfeat", "orb-all", "sift-all", "xfeat-all")}
-_LAZY.update({name: "scenesig.localiser.hybrid" for name in ("hybrid", "hybrid-orb", "hybrid-sift-all", "hybrid-orb-all")})
-
-
-def register_method(name: str, factory: Callable) -> None:
-    """Make ``factory(store, camera, T_vehicle_camera, config) -> WeakLocaliser`` available as ``name``."""
-    _METHODS[name] = factory
-
-
-def available_methods() -> list[str]:
-    return sorted(set(_METHODS) | set(_LAZY))
-
-
-def make_method(name: str, store: MapStore, camera: Camera, T_vehicle_camera, config: dict | None = None) -> WeakLocaliser:
-    """Instantiate a registered method (``signatures``, ``orb``, ``sift``, ...)."""
-    if name not in _METHODS and name in _LAZY:
-        import importlib
-
-        importlib.import_module(_LAZY[name])
-    if name not in _METHODS:
-        raise ValueError(f"unknown method {name!r}; available: {available_methods()}")
-    return _METHODS[name](store, camera, T_vehicle_camera, config)
 
 
 # ------------------------------------------------------------------------------------------------

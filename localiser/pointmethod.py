@@ -2,7 +2,7 @@
 
 ``scenesig localise MAP RUN --method orb|sift|xfeat|orb-all|sift-all|xfeat-all`` runs this instead of the scene
 signatures; replay, the pose graph, SE(2) snapping, the failure rule (20 m blind -> oracle reset),
-the outputs and the metrics are the shared code of :mod:`scenesig.localiser.pipeline` / :mod:`scenesig.localiser.replay`.
+the outputs and the metrics are the shared code of :mod:`scenesig.localiser.methods` / :mod:`scenesig.localiser.pipeline` / :mod:`scenesig.localiser.replay`.
 
 Set up as hloc users run point features.  Per frame, for the place the localiser chose:
 
@@ -51,7 +51,7 @@ from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.geometry import Camera
 
 from .detector import search_windows
-from .pipeline import Measurement, MotionPrior, WeakLocaliser, register_method
+from .methods import Measurement, MotionPrior, WeakLocaliser, register_method
 from .solver import default_config as solver_default
 from .solver import default_pnp_config, solve_pnp_prior
 
@@ -234,7 +234,7 @@ def method_name(kind: str, point_map: str = "reference") -> str:
 
 
 class PointLocaliser(WeakLocaliser):
-    """ORB, SIFT or XFeat against a place's keyframe 3D points (a :class:`scenesig.localiser.pipeline.WeakLocaliser`).
+    """ORB, SIFT or XFeat against a place's keyframe 3D points (a :class:`scenesig.localiser.methods.WeakLocaliser`).
 
     Parameters
     ----------

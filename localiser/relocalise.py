@@ -34,7 +34,8 @@ from scenesig.surveys.geometry import yaw_of
 from scenesig.surveys.settings import merge_settings
 
 from scenesig.signatures.bank import limit_blas_threads
-from .pipeline import Localiser, Measurement, MotionPrior, WeakLocaliser
+from .methods import Measurement, MotionPrior, WeakLocaliser
+from .pipeline import Localiser
 
 __all__ = ["default_config", "PlaceRetrieval", "Relocaliser", "SearchResult", "place_descriptors"]
 

@@ -67,7 +67,8 @@ from scenesig.surveys.run import SurveyRun, read_run
 
 from .outputs import (FRAMES_COLUMNS, TIMING_KEYS, compute_metrics, map_relative_truth,  # noqa: F401  (re-exported)
                       reference_path, write_outputs)
-from .pipeline import Localiser, Measurement, WeakLocaliser, make_method
+from .methods import Measurement, WeakLocaliser, make_method
+from .pipeline import Localiser
 
 log = logging.getLogger(__name__)
 
@@ -555,10 +556,10 @@ def resolve_config(config: dict | None = None, method: str = "signatures") -> di
 
 def method_settings(method: str, config: dict | None = None) -> dict:
     """The resolved settings of a registered method: scene signatures
-    (:data:`scenesig.localiser.pipeline.signature_default_config` with its detector's and solver's), the point-feature
+    (:data:`scenesig.localiser.signature_method.signature_default_config` with its detector's and solver's), the point-feature
     methods (:func:`scenesig.localiser.pointmethod.resolve_config`); another method's overrides as given."""
     from .detector import default_config as detector_default
-    from .pipeline import signature_default_config
+    from .signature_method import signature_default_config
     from .solver import default_config as solver_default
 
     if method == "signatures":
