@@ -5,7 +5,8 @@ For each place (every 10 m along the reference run):
 1. *training images* -- the frame nearest the place from every training run (by INS position and
    heading), the reference run's first; with few runs, each run also gives neighbouring frames within
    the place's segment (``frames_per_run``), and a place that still has fewer than ``min_images``
-   images gets photometrically augmented copies of them (:mod:`scenesig.signatures.augment`);
+   images gets photometrically augmented copies of them (:mod:`scenesig.signatures.augment`); the
+   selection is :mod:`scenesig.mapping.selection`;
 2. *mining* -- :func:`scenesig.signatures.mining.mine_place` (iterative discriminative clustering over the
    fixed template of candidate shapes), with images of other places of the reference run as extra
    negatives;
@@ -33,12 +34,21 @@ Places are independent, so they build in parallel: joblib locally, or a Dask dis
 interrupted build resumes where it stopped and produces the same bytes.
 
 The command line is ``scenesig build-map RUN... --reference RUN --out maps/NAME [--config JSON]``.
+
+This module holds the build options (:data:`default_config`, :func:`resolve_config`, :func:`load_config`),
+the per-place assembly (:func:`build_place`, :func:`mine_and_refine`) and the orchestration
+(:func:`build_map`: image vetting, joblib/Dask, georeferencing, the manifest).  The other concerns live in
+their own modules, and every name of theirs this module exposed is re-exported here:
+
+* :mod:`scenesig.mapping.selection` -- which frames of which runs feed a place (training images, augmented
+  copies, negatives, the refinement window);
+* :mod:`scenesig.mapping.truth_scoring` -- landmark depth errors against the simulator's truth;
+* :mod:`scenesig.mapping.build_summary` -- the stats journal (``build_stats.jsonl``) and ``build_summary.json``.
 """
 from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,35 +56,33 @@ from pathlib import Path
 import numpy as np
 
 from scenesig.surveys.errors import CorruptImageError, DataError
-from scenesig.surveys.io import append_line
 from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.geometry import invert
 from scenesig.surveys.run import SurveyRun
 from scenesig.signatures import experience
-from scenesig.signatures.augment import synthesise
 from scenesig.signatures import globaldesc
 from scenesig.signatures.mining import mine_place
 from scenesig.signatures.bank import default_config as bank_default_config
 from scenesig.signatures.hog import level_scale
 from scenesig.mapping import georef as georef_mod
 from scenesig.mapping import places as places_mod
-from scenesig.mapping.coverage import MIN_SIGNATURES
 from scenesig.mapping import layers as layers_mod
 from scenesig.mapping.pointmap import build_point_features, build_point_features_all
 from scenesig.mapping.refine import Detections, REASONS, refine_landmarks
 from scenesig.mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
-from scenesig.surveys.io import atomic_write_bytes
+# the concerns split out of this module, re-exported so ``scenesig.mapping.build.NAME`` keeps working
+from scenesig.mapping.selection import (MAX_FRAMES_PER_RUN, MIN_IMAGES, _subsample, frames_per_run,  # noqa: F401
+                                        mining_images, place_negatives, place_views)
+from scenesig.mapping.truth_scoring import _true_depths, landmark_depth_errors  # noqa: F401
+from scenesig.mapping.build_summary import (_PARTS, _append_stats, _bytes_by_part, _index_ranges,  # noqa: F401
+                                            _read_stats, _seconds_by_layer, _summary_layers, _weak_message,
+                                            _write_summary)
+from scenesig.mapping.coverage import MIN_SIGNATURES  # noqa: F401
 
 __all__ = ["default_config", "resolve_config", "build_map", "build_place", "mine_and_refine", "MinedPlace", "mining_images",
            "place_views", "place_negatives", "vet_images", "load_config"]
 
 log = logging.getLogger(__name__)
-
-#: Images a place is mined from at least (see ``frames_per_run``, ``min_images``): two per partition of
-#: the clustering (McManus et al. 2015, §3.2; three partitions), as six runs give.
-MIN_IMAGES = 6
-#: Frames a run gives a place at most when ``frames_per_run`` is automatic.
-MAX_FRAMES_PER_RUN = 3
 
 default_config = {
     "places": {},                 # overrides of mapping.places.default_config
@@ -142,123 +150,6 @@ def resolve_config(config: dict | None = None) -> dict:
             "single_experience": merge_settings(experience.default_config, cfg["single_experience"],
                                                 "single-experience", open=("mining",)),
             "descriptor": merge_settings(globaldesc.default_config, cfg["descriptor"], "descriptor")}
-
-
-def _subsample(window: np.ndarray, centre: int, n: int, positions: np.ndarray | None = None) -> np.ndarray:
-    """At most ``n`` frames of the window, evenly spread, always including the place's own frame.
-
-    With ``positions`` (W, 3) of the window frames, the frames are spread evenly in distance travelled,
-    not in frame count: a stop in the window would otherwise fill it with views from one spot, which
-    carry no parallax and outvote the moving frames in the depth fit.
-    """
-    if len(window) <= n:
-        return window
-    if positions is None:
-        pick = np.unique(np.round(np.linspace(0, len(window) - 1, n)).astype(int))
-    else:
-        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
-        pick = np.unique(np.searchsorted(s, np.linspace(0.0, s[-1], n)).clip(0, len(window) - 1))
-    out = np.union1d(window[pick], [centre])
-    return out
-
-
-def _true_depths(run: SurveyRun, frame: int, image: np.ndarray, boxes: np.ndarray, scales: np.ndarray):
-    """Ground-truth depth (m) of each signature's patch in a simulated frame, or None for real data.
-
-    A signature is a patch, not a point, and its classifier sees the patch's HOG: image gradients at the
-    pyramid level it fired at.  So the reference depth is the median of the simulator's depth buffer over
-    the whole firing box, each pixel weighted by the gradient magnitude of ``image`` at that level (sky
-    has no depth and is left out; textureless road or wall, which HOG hardly sees, counts little).  The
-    spread ``(q75 - q25) / median`` of the same weighted distribution says how far the patch is from
-    having one depth (large when it straddles a depth discontinuity).
-
-    Parameters
-    ----------
-    image : (H, W) gray reference image; boxes : (n, 4) ``x0, y0, x1, y1`` firing boxes (pixels);
-    scales : (n,) pyramid scale of each firing.
-
-    Returns
-    -------
-    (depth, spread) : two (n,) arrays (NaN where the box holds no textured non-sky pixel), or None.
-    """
-    import cv2
-
-    from scenesig.surveys.sim.truth import depth_image
-
-    depth = depth_image(run, frame)
-    if depth is None:
-        return None
-    out = np.full(len(boxes), np.nan)
-    spread = np.full(len(boxes), np.nan)
-    h, w = depth.shape
-    img = np.asarray(image, dtype=np.float32)
-    grads = {}
-    for i, (x0, y0, x1, y1) in enumerate(boxes):
-        if not (np.isfinite([x0, y0, x1, y1]).all() and np.isfinite(scales[i]) and scales[i] > 0):
-            continue
-        s = round(float(scales[i]), 4)
-        if s not in grads:  # gradient magnitude at the firing's level, brought back to full resolution
-            small = cv2.resize(img, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
-            g = np.hypot(cv2.Sobel(small, cv2.CV_32F, 1, 0), cv2.Sobel(small, cv2.CV_32F, 0, 1))
-            grads[s] = cv2.resize(g, (w, h), interpolation=cv2.INTER_LINEAR)
-        r0, r1 = int(max(0, np.floor(y0))), int(min(h, np.ceil(y1)))
-        c0, c1 = int(max(0, np.floor(x0))), int(min(w, np.ceil(x1)))
-        d = depth[r0:r1, c0:c1].ravel()
-        wt = grads[s][r0:r1, c0:c1].ravel()
-        ok = np.isfinite(d) & (wt > 0)
-        if not ok.any():
-            continue
-        order = np.argsort(d[ok], kind="stable")
-        ds, cw = d[ok][order], np.cumsum(wt[ok][order], dtype=float)
-        q25, q50, q75 = ds[np.searchsorted(cw, np.array([0.25, 0.5, 0.75]) * cw[-1]).clip(0, ds.size - 1)]
-        out[i], spread[i] = float(q50), float((q75 - q25) / q50)
-    return out, spread
-
-
-def frames_per_run(cfg: dict, n_runs: int) -> int:
-    """Frames each run gives a place seen by ``n_runs`` runs (``cfg``: merged build options)."""
-    if cfg["frames_per_run"] is not None:
-        n = int(cfg["frames_per_run"])
-        if n < 1:
-            raise ValueError(f"frames_per_run must be >= 1, got {n}")
-        return n
-    return int(min(cfg["max_frames_per_run"], max(1, math.ceil(cfg["min_images"] / max(1, n_runs)))))
-
-
-def mining_images(seed: int, views: list, images: list, config: dict | None = None):
-    """The images a place is mined from, and their alignment offsets.
-
-    ``images[k]`` is the training frame of ``views[k]`` (the reference run's first); these come first
-    and in that order, so with one frame per run and enough runs mining sees exactly the paper's
-    training set.  Then each run's neighbouring frames (:func:`scenesig.mapping.places.neighbour_frames`, within
-    the place's segment), then -- while the place has fewer than ``min_images`` -- photometrically
-    augmented copies of the frames in turn (:func:`scenesig.signatures.augment.augment`; seeded by ``seed``, the
-    place index at build time, so a build repeats), each offset by its known shift.
-
-    Returns
-    -------
-    images : list of ndarray (gray)
-    offsets : (n, 2) ndarray
-    counts : dict
-        ``frames_per_run``, ``frames`` (real frames), ``augmented`` (copies).
-    """
-    import cv2
-
-    cfg = _merge(config)
-    pcfg = merge_settings(places_mod.default_config, cfg["places"], "places")
-    per_run = frames_per_run(cfg, len(views))
-    out = list(images)
-    for v in views:
-        for j in places_mod.neighbour_frames(v, per_run, pcfg["frame_step_m"], pcfg["spacing_m"] / 2)[1:]:
-            out.append(v.run.image(int(j), gray=True))
-    n_frames = len(out)
-    rng = np.random.default_rng([int(seed), 19])
-    conditions = experience.settings_for(len(views), None, cfg["single_experience"])["conditions"]
-    out, offsets = synthesise(out, [[0.0, 0.0]] * n_frames, max(0, int(cfg["min_images"]) - n_frames),
-                              rng, float(cfg["augment_shift_px"]), conditions)
-    out = out[:n_frames] + [cv2.cvtColor(c, cv2.COLOR_BGR2GRAY) for c in out[n_frames:]]
-    counts = {"frames_per_run": per_run, "frames": n_frames, "augmented": len(out) - n_frames}
-    return out, np.asarray(offsets, dtype=float), counts
 
 
 def build_place(place: places_mod.Place, views: list, negatives: list[np.ndarray], config: dict | None = None):
@@ -395,15 +286,8 @@ def _build_place(place, views, negatives, config):
 
     rel_err, truth_spread = [], []
     if len(keep):
-        # Detections' (x, y) are window centres in pixel-centre coordinates (pixel i spans i-0.5..i+0.5)
-        centre = boxes + 0.5
-        box_xyxy = np.concatenate([centre - ref_size / 2, centre + ref_size / 2], axis=1)
-        truth = _true_depths(ref.run, ref.frame, images[0], box_xyxy, ref_scale)
-        if truth is not None:
-            truth, spread = truth
-            ok = np.isfinite(truth) & (truth > 0)
-            rel_err = (np.abs(depths[ok] - truth[ok]) / truth[ok]).tolist()
-            truth_spread = spread[ok].tolist()
+        rel_err, truth_spread = landmark_depth_errors(ref.run, ref.frame, images[0], boxes, ref_size, ref_scale,
+                                                      depths)
     # each training run's INS + its visually solved pose relative to the place: one estimate of the
     # place's world pose per run, combined over all places in build_map (mapping.georef)
     georef_obs = georef_mod.observe_place(place, views, images, kept_bank, landmarks, covs,
@@ -452,19 +336,6 @@ def _build_place(place, views, negatives, config):
              # build time per layer (signatures: mining, refinement, georeferencing observations)
              "seconds_by_layer": seconds}
     return data, stats
-
-
-def place_views(place, train: list[SurveyRun], reference: SurveyRun, cfg: dict) -> list:
-    """A place's training views (:func:`scenesig.mapping.places.training_views`), the reference run's first."""
-    views = places_mod.training_views(place, train, cfg["places"])
-    return [v for v in views if v.run.name == reference.name] + [v for v in views if v.run.name != reference.name]
-
-
-def place_negatives(place, ref_frames: dict, reference: SurveyRun, cfg: dict) -> list[np.ndarray]:
-    """Extra negatives of a place: the reference images of the places ``cfg["negative_places"]`` away
-    (``ref_frames``: place index -> reference frame)."""
-    return [reference.image(ref_frames[place.index + off], gray=True)
-            for off in cfg["negative_places"] if place.index + off in ref_frames]
 
 
 def _place_task(place, views, negatives, config, pooled: bool = False):
@@ -674,28 +545,6 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     return summary
 
 
-def _weak_message(summary: dict, allstats: dict) -> str:
-    weak = summary["places_weak"]
-    runs = sorted({st.get("runs", 0) for i, st in allstats.items() if i in weak})
-    return (f"{len(weak)} of {summary['places']} places have fewer than {MIN_SIGNATURES} signatures and will "
-            f"rarely localise: {_index_ranges(weak)} (seen by {'/'.join(map(str, runs))} runs; per-place "
-            f"counts and rejection reasons in build_summary.json 'per_place'). More training runs of "
-            f"different appearance, or more frames per run (--frames-per-run), give them more.")
-
-
-def _index_ranges(idx) -> str:
-    """``[0, 1, 2, 5, 7, 8]`` -> ``"0-2, 5, 7-8"``."""
-    idx = sorted(int(i) for i in idx)
-    parts, start = [], None
-    for k, i in enumerate(idx):
-        if start is None:
-            start = i
-        if k + 1 == len(idx) or idx[k + 1] != i + 1:
-            parts.append(f"{start}" if start == i else f"{start}-{i}")
-            start = None
-    return ", ".join(parts)
-
-
 def _refuse_empty_map(out: Path, writer: MapWriter, places, allstats: dict, seconds: float) -> None:
     """No place kept a signature: such a map cannot localise, so none is written (the place files and the
     journal go, so a re-run with other settings starts afresh); ``build_summary.json`` stays to say why."""
@@ -719,118 +568,6 @@ def _written_meta(out: Path, places) -> dict:
         path = out / place_file_name(p.index)
         obs[p.index] = decode_place(path.read_bytes(), path, p.index).meta
     return obs
-
-
-def _append_stats(out: Path, st: dict) -> None:
-    """Journal one place's build stats just before its file is written, so they survive an interruption
-    (a resumed build skips the place and would otherwise lose them); a later line for a place wins."""
-    append_line(Path(out) / "build_stats.jsonl", json.dumps(st))
-
-
-def _read_stats(out: Path) -> dict:
-    """Every place's stats in ``build_stats.jsonl`` (this and earlier runs; a later line wins)."""
-    per_place_path = out / "build_stats.jsonl"
-    allstats = {}
-    for line in (per_place_path.read_text().splitlines() if per_place_path.exists() else []):
-        try:
-            st = json.loads(line)
-        except json.JSONDecodeError:  # a torn last line of a killed build: that place was rebuilt
-            continue
-        allstats[st["place"]] = st
-    return allstats
-
-
-def _write_summary(out: Path, places, allstats: dict, seconds: float, corrupt_files=()) -> dict:
-    """``build_summary.json`` from every place's stats (:func:`_read_stats`)."""
-    path = out / "build_summary.json"
-    allstats = {p.index: allstats[p.index] for p in places if p.index in allstats}
-    files = sorted((out / "places").glob("place_*.npz"))
-    sizes = [f.stat().st_size for f in files]
-    errs = [e for st in allstats.values() for e in st["depth_rel_errors"]]
-    # truth spread of each error's patch ((q75 - q25) / median of its depths): < 0.3 = one surface
-    spread = [s for st in allstats.values() for s in st.get("depth_truth_spread", [np.nan] * len(st["depth_rel_errors"]))]
-    single = [e for e, s in zip(errs, spread) if s < 0.3]
-    rejected = {"not_converged": 0, **{r: 0 for r in REASONS}}
-    for st in allstats.values():
-        for k, v in st["rejected"].items():
-            rejected[k] = rejected.get(k, 0) + v
-    summary = {
-        "places": len(places),
-        "signatures_per_place_mean": float(np.mean([st["signatures"] for st in allstats.values()])) if allstats else 0.0,
-        "bytes_per_place_mean": float(np.mean(sizes)) if sizes else 0.0,
-        # where the bytes go: the scene-signature bank and its landmarks, the point-feature baseline's
-        # keyframe features, the keyframe image for figures, and the metadata
-        "bytes_per_place_by_part_mean": _bytes_by_part(files),
-        # the same per map layer (mapping.layers): what each layer costs a place, stored and built
-        "layers": _summary_layers(allstats, files),
-        "bytes_per_place_by_layer_mean": _bytes_by_part(files, by_layer=True),
-        "seconds_per_place_by_layer_mean": _seconds_by_layer(allstats),
-        "seconds_per_place_mean": float(np.mean([st["seconds"] for st in allstats.values()])) if allstats else 0.0,
-        "landmark_depth_rel_error_median": float(np.median(errs)) if errs else None,
-        "landmark_depth_rel_error_quartiles": [float(q) for q in np.percentile(errs, [25, 50, 75])] if errs else None,
-        "landmarks_with_truth": len(errs),
-        # patches on one surface only (no depth discontinuity inside): the truth is unambiguous there
-        "landmark_depth_rel_error_median_single_depth": float(np.median(single)) if single else None,
-        "landmarks_single_depth": len(single),
-        "rejected": rejected,
-        # training frames left out because their image failed strict decoding (--skip-corrupt)
-        "frames_corrupt": len(corrupt_files),
-        "corrupt_frames": list(corrupt_files),
-        # places with fewer than MIN_SIGNATURES signatures: too few to localise under changed appearance
-        "places_weak": sorted(i for i, st in allstats.items() if st["signatures"] < MIN_SIGNATURES),
-        "min_signatures": MIN_SIGNATURES,
-        # per place: runs that see it, images mined (frames and augmented copies), signatures kept, and
-        # the candidate shapes rejected by reason
-        "per_place": [{k: st.get(k) for k in ("place", "runs", "images", "frames", "augmented", "signatures",
-                                              "rejected")} for _, st in sorted(allstats.items())],
-        "seconds": seconds,
-    }
-    atomic_write_bytes(path, (json.dumps(summary, indent=2) + "\n").encode())
-    return summary
-
-
-#: Parts of a place file, by member-name prefix (mapping.store's layout).
-_PARTS = {"signatures": ("bank/", "landmarks", "covariances", "classifier_ids"), "point_features": ("points/",),
-          "keyframe": ("keyframe",)}
-
-
-def _summary_layers(allstats: dict, files) -> list:
-    """The layers the places were built with (from the journal; else from a place file's members)."""
-    seen = [name for st in allstats.values() for name in st.get("seconds_by_layer", {})]
-    if not seen and files:
-        import zipfile
-
-        with zipfile.ZipFile(files[0]) as z:
-            seen = [layers_mod.layer_of_member(i.filename) for i in z.infolist()]
-    return [name for name in layers_mod.LAYERS if name in set(seen)]
-
-
-def _seconds_by_layer(allstats: dict) -> dict:
-    """Mean build seconds per place of each layer (places whose stats record it)."""
-    acc: dict = {}
-    for st in allstats.values():
-        for k, v in (st.get("seconds_by_layer") or {}).items():
-            acc.setdefault(k, []).append(float(v))
-    return {k: float(np.mean(acc[k])) for k in layers_mod.LAYERS if k in acc}
-
-
-def _bytes_by_part(files, by_layer: bool = False) -> dict:
-    """Mean stored (compressed) bytes per place file of each part in :data:`_PARTS` (the rest: ``meta``),
-    or with ``by_layer`` of each map layer (:func:`scenesig.mapping.layers.layer_of_member`)."""
-    import zipfile
-
-    totals = {} if by_layer else {k: 0 for k in (*_PARTS, "meta")}
-    for f in files:
-        with zipfile.ZipFile(f) as z:
-            for info in z.infolist():
-                if by_layer:
-                    part = layers_mod.layer_of_member(info.filename)
-                    totals.setdefault(part, 0)
-                else:
-                    part = next((k for k, prefixes in _PARTS.items() if info.filename.startswith(prefixes)), "meta")
-                # the member's share of the file: its compressed data plus its local and central headers
-                totals[part] += info.compress_size + 30 + 46 + 2 * len(info.filename.encode())
-    return {k: (v / len(files) if files else 0.0) for k, v in totals.items()}
 
 
 def load_config(text: str | None) -> dict | None:
