@@ -7,8 +7,8 @@ detector on every ``--every``-th frame; the demo's 10 Hz camera with ``--every 2
 * ``image_decode`` -- reading and decoding the detector frames (:meth:`scenesig.surveys.run.SurveyRun.image`;
   with prefetching, the default, on a worker thread, overlapping the other stages);
 * ``hog`` -- the HOG pyramid regions the bank needs (:func:`scenesig.signatures.hog.build_level`, one level);
-* ``bank_filters`` -- the filter responses (``scenesig.signatures.bank._score_job``, one level and filter width);
-* ``peak_search`` -- best firing per classifier, sub-cell refinement (``scenesig.signatures.bank._pick``);
+* ``bank_filters`` -- the filter responses (``scenesig.signatures.detection._score_job``, one level and filter width);
+* ``peak_search`` -- best firing per classifier, sub-cell refinement (``scenesig.signatures.detection._pick``);
 * ``search_windows`` -- the prior's search windows and predicted scales (:mod:`scenesig.localiser.detector`);
 * ``solve`` -- the eq. 10 pose solve (:func:`scenesig.localiser.solver.solve`);
 * ``graph_update`` -- odometry, localisations and resets into the pose graph
@@ -50,11 +50,11 @@ def _targets():
     from scenesig.localiser import detector, pipeline, posegraph, se2
     from scenesig.localiser.pipeline import Localiser
     from scenesig.mapping.store import MapStore
-    from scenesig.signatures import bank, hog
+    from scenesig.signatures import detection, hog
     from scenesig.surveys.run import SurveyRun
     return [(SurveyRun, "image", "image_decode"),
-            (bank, "build_level", "hog"), (hog, "build_level", "hog"), (bank, "_score_job", "bank_filters"),
-            (bank, "_pick", "peak_search"),
+            (detection, "build_level", "hog"), (hog, "build_level", "hog"), (detection, "_score_job", "bank_filters"),
+            (detection, "_pick", "peak_search"),
             (detector, "search_windows", "search_windows"),
             (detector.Detector, "_predicted_levels", "search_windows"),
             (pipeline, "solve", "solve"),

@@ -34,8 +34,8 @@ __all__ = ["profile_mining", "main"]
 
 
 def _targets(timer):
-    from scenesig.signatures import bank, classifier, hog, mining
-    return [(hog, "build_pyramid", "pyramids"), (bank, "build_pyramid", "pyramids"),
+    from scenesig.signatures import classifier, detection, hog, mining
+    return [(hog, "build_pyramid", "pyramids"), (detection, "build_pyramid", "pyramids"),
             (mining, "partition_images", "partitions"), (mining, "appearance_descriptor", "partitions"),
             (mining, "_candidates", "candidates"), (mining, "_negatives", "negatives"),
             (classifier.LinearSVMTrainer, "__init__", "gram"), (classifier.LinearSVMTrainer, "fit", "svm_kernel"),

@@ -75,7 +75,7 @@ default_config = {
     # thread only spins (~30 % more CPU, taken from the other blocks or the other process), and a
     # fixed count gives the same floating-point sums -- the same detections -- on every machine.
     "blas_threads": 1,
-    # Pyramid levels described and scored at once (signatures.bank: the same detections for any
+    # Pyramid levels described and scored at once (signatures.detection: the same detections for any
     # count): on two threads for a whole-image search (large levels); a windowed search's regions
     # are small, and a second thread only adds its hand-overs (replays measured no faster).
     "threads": 2,

@@ -97,7 +97,7 @@ default_config = {
     # "xfeat-all" (a keyframe from every training run at the place).  The default is what the default
     # method needs.
     "layers": list(layers_mod.DEFAULT_LAYERS),
-    # overrides of signatures.bank.default_config for the window detections: two pyramid levels either
+    # overrides of signatures.detection.default_config for the window detections: two pyramid levels either
     # side (the bank's default is one) let the detector follow a patch that grows or shrinks by up to
     # 41 % over the window instead of lagging (measured on the demo world: median landmark depth error
     # 15 % -> 14 %, 8 % more landmarks kept, +1 s per place)
