@@ -47,7 +47,7 @@ __all__ = ["profile_localise", "main"]
 
 
 def _targets():
-    from scenesig.localiser import detector, pipeline, posegraph, se2
+    from scenesig.localiser import detector, posegraph, se2, signature_method
     from scenesig.localiser.pipeline import Localiser
     from scenesig.mapping.store import MapStore
     from scenesig.signatures import detection, hog
@@ -57,7 +57,7 @@ def _targets():
             (detection, "_pick", "peak_search"),
             (detector, "search_windows", "search_windows"),
             (detector.Detector, "_predicted_levels", "search_windows"),
-            (pipeline, "solve", "solve"),
+            (signature_method, "solve", "solve"),
             (posegraph.PoseGraph, "add_odometry", "graph_update"),
             (posegraph.PoseGraph, "add_localisation", "graph_update"),
             (posegraph.PoseGraph, "reset", "graph_update"),
