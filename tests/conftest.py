@@ -29,6 +29,16 @@ def xfeat_model():
     return path
 
 
+@pytest.fixture(scope="module")
+def tiny_world(tmp_path_factory):
+    """The tiny simulated world of ``tests/build_world.py``: ``(runs, map folder)``, built once per session
+    folder (the map is reused from disk)."""
+    from build_world import tiny_map, tiny_runs
+
+    base = tmp_path_factory.getbasetemp()
+    return tiny_runs(base), tiny_map(base)
+
+
 def make_run(n_frames=5, with_truth=True, size=(64, 48), seed=0):
     """A small synthetic SurveyRun (in memory) and its images."""
     from scenesig.surveys.geometry import Camera, make_pose, rot_z, CAMERA_FROM_VEHICLE_AXES

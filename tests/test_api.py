@@ -12,18 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from build_world import CONFIG, map_contents, tiny_map, tiny_runs
+from build_world import CONFIG, map_contents
 
 pytest.importorskip("scenesig.surveys.sim.simulate")
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    base = tmp_path_factory.getbasetemp()
-    runs = tiny_runs(base)
-    return runs, tiny_map(base)
 
 
 def _night(runs):
@@ -50,11 +43,11 @@ def test_lazy_exports():
         scenesig.no_such_thing  # noqa: B018
 
 
-def test_api_build_is_the_cli_build(world, tmp_path):
+def test_api_build_is_the_cli_build(tiny_world, tmp_path):
     from scenesig import api
     from scenesig.cli import main
 
-    runs, library = world
+    runs, library = tiny_world
     paths = [str(r.root) for r in runs]
     assert main(["build-map", *paths, "--reference", paths[0], "--out", str(tmp_path / "cli"), "--config",
                  json.dumps(CONFIG)]) == 0
@@ -73,13 +66,13 @@ def test_api_build_is_the_cli_build(world, tmp_path):
     assert map_contents(library)["places/place_0000.npz"] == cli["places/place_0000.npz"]
 
 
-def test_api_localise_is_the_cli_localise(world, tmp_path):
+def test_api_localise_is_the_cli_localise(tiny_world, tmp_path):
     from scenesig.localiser.outputs import read_frames_csv
     from scenesig import api
     from scenesig.cli import main
     from scenesig.surveys.tum import read_tum
 
-    runs, root = world
+    runs, root = tiny_world
     night = _night(runs)
     assert main(["localise", str(root), str(night.root), "--out", str(tmp_path / "cli")]) == 0
     loc = api.localise(root, night.root)                    # a folder; nothing written
@@ -107,12 +100,12 @@ def test_api_localise_is_the_cli_localise(world, tmp_path):
     assert "failure_distance_m" in m["settings"]["localiser"]
 
 
-def test_localise_without_truth_has_no_error_keys(world):
+def test_localise_without_truth_has_no_error_keys(tiny_world):
     import dataclasses
 
     from scenesig import api
 
-    runs, root = world
+    runs, root = tiny_world
     night = _night(runs)
     # the run as the vehicle has it: INS/GPS (the oracle) but no truth
     run = dataclasses.replace(night, truth_times=None, truth_poses=None, groundtruth_times=None,
@@ -125,10 +118,10 @@ def test_localise_without_truth_has_no_error_keys(world):
     assert m["every"] == 8 and m["settings"]["replay"]["every"] == 8
 
 
-def test_compare_one_row_per_run_and_method(world):
+def test_compare_one_row_per_run_and_method(tiny_world):
     from scenesig import api
 
-    runs, root = world
+    runs, root = tiny_world
     night = _night(runs)
     rows = api.compare(root, [night.root, runs[1].root], methods=["signatures", "orb"])
     assert [(r["run"], r["method"]) for r in rows] == [(night.name, "signatures"), (night.name, "orb"),
@@ -138,7 +131,7 @@ def test_compare_one_row_per_run_and_method(world):
     assert rows[1]["lateral_error_m"] == alone["lateral_error_m"] and rows[1]["failures"] == alone["failures"]
 
 
-def test_presets_reach_the_library(world):
+def test_presets_reach_the_library(tiny_world):
     from scenesig import api
     from scenesig.presets import PAPER_DIFFERENCES, apply_preset, resolve_settings
 
@@ -168,12 +161,12 @@ def test_presets_reach_the_library(world):
     assert apply_preset("build", None, "default") is None
     with pytest.raises(ValueError, match="unknown preset"):
         apply_preset("build", None, "papr")
-    runs, root = world
+    runs, root = tiny_world
     loc = api.localise(root, _night(runs).root, preset="paper", every=8)
     assert loc.metrics()["settings"]["method"]["prior_gating"] is False
 
 
-def test_readme_example_runs(world, tmp_path, monkeypatch):
+def test_readme_example_runs(tiny_world, tmp_path, monkeypatch):
     """The README's notebook-style example, run as written in a folder holding the tiny world (its
     build given this suite's cut-down settings for speed; everything else as printed)."""
     import scenesig
@@ -181,7 +174,7 @@ def test_readme_example_runs(world, tmp_path, monkeypatch):
 
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     code = re.search(r"<!-- api-example -->\s*```python\n(.*?)```", text, re.S).group(1)
-    runs, _ = world
+    runs, _ = tiny_world
     (tmp_path / "world").mkdir()
     for r in runs:
         (tmp_path / "world" / r.root.name).symlink_to(r.root)
@@ -217,7 +210,7 @@ def test_config_show_and_bad_settings_at_the_cli(capsys, tmp_path):
     assert exc.value.code == 2 and "failure_distance_m" in capsys.readouterr().err
 
 
-def test_missing_extra_is_a_clear_error(world, monkeypatch, capsys):
+def test_missing_extra_is_a_clear_error(tiny_world, monkeypatch, capsys):
     import sys
 
     from scenesig import api
@@ -227,7 +220,7 @@ def test_missing_extra_is_a_clear_error(world, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "distributed", None)        # as if the extra were not installed
     with pytest.raises(MissingExtraError, match=r'scenesig\[distributed\]'):
         require("distributed", "distributed", "a Dask cluster")
-    runs, root = world
+    runs, root = tiny_world
     with pytest.raises(MissingExtraError, match="distributed"):
         api.compare(root, [runs[2].root], methods=["signatures"], scheduler="tcp://127.0.0.1:1")
     paths = [str(r.root) for r in runs]
@@ -236,10 +229,10 @@ def test_missing_extra_is_a_clear_error(world, monkeypatch, capsys):
     assert "pip install" in capsys.readouterr().err and not (root.parent / "nodask").exists()   # nothing written
 
 
-def test_compare_at_the_cli(world, capsys, tmp_path):
+def test_compare_at_the_cli(tiny_world, capsys, tmp_path):
     from scenesig.cli import main
 
-    runs, root = world
+    runs, root = tiny_world
     assert main(["compare", str(root), str(runs[2].root), "--methods", "signatures", "--every", "8",
                  "--json", str(tmp_path / "rows.json")]) == 0
     rows = json.loads((tmp_path / "rows.json").read_text())

@@ -17,20 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from build_world import CONFIG, SHAPES, tiny_map, tiny_runs
+from build_world import CONFIG, SHAPES
 from conftest import SHARED_DATA
 
 from scenesig.commands.bench import BENCHMARKS
 
 #: a cut-down candidate template (the tiny world's) for the benchmarks that mine banks
 TINY_MINING = {"shapes": SHAPES, "n_partitions": 2}
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    base = tmp_path_factory.getbasetemp()
-    runs = tiny_runs(base)
-    return runs, tiny_map(base)
 
 
 def _shared(*parts) -> Path:
@@ -119,20 +112,20 @@ def _small(place_images):
 
 
 # ------------------------------------------------------------------------- the tiny world and its map
-def test_detector(world, capsys):
-    runs, root = world
+def test_detector(tiny_world, capsys):
+    runs, root = tiny_world
     _run("detector", [root, runs[2].root, "--frames", "2"], capsys)
 
 
-def test_pointmap(world, capsys):
-    runs, _ = world
+def test_pointmap(tiny_world, capsys):
+    runs, _ = tiny_world
     _run("pointmap", [runs[0].root, "--frame", "4", "--window-m", "3"], capsys)
 
 
-def test_mining(world, capsys, monkeypatch, tmp_path):
+def test_mining(tiny_world, capsys, monkeypatch, tmp_path):
     from scenesig.signatures import mining
 
-    runs, _ = world
+    runs, _ = tiny_world
     real = mining.mine_place
     monkeypatch.setattr(mining, "mine_place", lambda *a, **k: real(*a, **{**k, "config": TINY_MINING}))
     images = [p for r in runs for p in _frames(r, 2, every=3)]
@@ -140,52 +133,52 @@ def test_mining(world, capsys, monkeypatch, tmp_path):
     assert (tmp_path / "bank.npz").is_file()
 
 
-def test_profile_mining(world, capsys):
-    runs, _ = world
+def test_profile_mining(tiny_world, capsys):
+    runs, _ = tiny_world
     images = [p for r in runs for p in _frames(r, 2, every=3)]
     _run("profile_mining", ["--images", *images, "--shapes", "4"], capsys)
 
 
-def test_profile_localise(world, tmp_path, capsys):
-    runs, root = world
+def test_profile_localise(tiny_world, tmp_path, capsys):
+    runs, root = tiny_world
     _run("profile_localise", [root, runs[2].root, "--every", "8", "--json", tmp_path / "p.json"], capsys,
          tmp_path / "p.json")
 
 
-def test_relocalise(world, tmp_path, capsys):
-    runs, root = world
+def test_relocalise(tiny_world, tmp_path, capsys):
+    runs, root = tiny_world
     _run("relocalise", [root, runs[2].root, "--places", "4,8", "--frames", "2", "--json", tmp_path / "r.json"],
          capsys, tmp_path / "r.json")
 
 
-def test_uncertainty(world, tmp_path, capsys):
+def test_uncertainty(tiny_world, tmp_path, capsys):
     from scenesig.localiser.replay import localise
 
-    runs, root = world
+    runs, root = tiny_world
     localise(root, runs[2].root, tmp_path / "loc", every=8, progress=False, figure=False)
     _run("uncertainty", [tmp_path / "loc", "--factors", "1,2"], capsys)
 
 
-def test_hybrid_calibration(world, tmp_path, capsys):
-    runs, root = world         # the tiny map holds ORB keyframes (tests/build_world.py)
+def test_hybrid_calibration(tiny_world, tmp_path, capsys):
+    runs, root = tiny_world         # the tiny map holds ORB keyframes (tests/build_world.py)
     doc = _run("hybrid_calibration", [root, runs[2].root, "--points", "orb", "--every", "8",
                                       "--json", tmp_path / "h.json"], capsys, tmp_path / "h.json")
     assert "config" in doc
 
 
-def test_rosbag_import(world, capsys):
+def test_rosbag_import(tiny_world, capsys):
     pytest.importorskip("rosbags")
-    runs, _ = world
+    runs, _ = tiny_world
     _run("rosbag-import", [runs[0].root, "--frames", "4", "--formats", "mcap", "--images", "raw", "--repeats", "1"],
          capsys)
 
 
-def test_rosbag_roundtrip(world, tmp_path, monkeypatch, capsys):
+def test_rosbag_roundtrip(tiny_world, tmp_path, monkeypatch, capsys):
     """The round trip on the tiny world (its three runs already simulated, not four)."""
     pytest.importorskip("rosbags")
     from scenesig.benchmarks import rosbag_roundtrip
 
-    runs, _ = world
+    runs, _ = tiny_world
     (tmp_path / "world").mkdir()
     for r in runs:
         shutil.copytree(r.root, tmp_path / "world" / r.root.name)
@@ -202,12 +195,12 @@ def test_rosbag_roundtrip(world, tmp_path, monkeypatch, capsys):
     assert doc
 
 
-def test_demo_localise(world, tmp_path, capsys):
+def test_demo_localise(tiny_world, tmp_path, capsys):
     """The demo's localisation stage on a demo-shaped folder made of the tiny world (one live run, the
     cheapest entry)."""
     from scenesig.demo import default_config
 
-    runs, root = world
+    runs, root = tiny_world
     demo = tmp_path / "demo"
     (demo / "world").mkdir(parents=True)
     for r in runs:

@@ -13,18 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from build_world import CONFIG, map_contents, tiny_map, tiny_runs
+from build_world import CONFIG, map_contents
 
 pytest.importorskip("scenesig.surveys.sim.simulate")
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    base = tmp_path_factory.getbasetemp()
-    runs = tiny_runs(base)
-    return runs, tiny_map(base)
 
 
 def _assert_same_map(a: dict, b: dict, what: str):
@@ -33,11 +26,11 @@ def _assert_same_map(a: dict, b: dict, what: str):
         assert a[name] == b[name], f"{what}: {name} differs"
 
 
-def test_dask_and_resumed_builds_give_the_local_build_bytes(world, tmp_path):
+def test_dask_and_resumed_builds_give_the_local_build_bytes(tiny_world, tmp_path):
     distributed = pytest.importorskip("distributed")
     from scenesig.mapping.build import build_map
 
-    runs, local = world
+    runs, local = tiny_world
     reference = map_contents(local)
     assert len(reference) >= 3 + 2  # three places, manifest, summary
 
@@ -57,8 +50,8 @@ def test_dask_and_resumed_builds_give_the_local_build_bytes(world, tmp_path):
     _assert_same_map(reference, map_contents(tmp_path / "resumed"), "resumed build")
 
 
-def test_killed_build_resumes_to_the_same_bytes(world, tmp_path):
-    runs, local = world
+def test_killed_build_resumes_to_the_same_bytes(tiny_world, tmp_path):
+    runs, local = tiny_world
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "scenesig", "build-map", *[str(r.root) for r in runs], "--reference", str(runs[0].root),
            "--out", str(out), "--jobs", "1", "--config", json.dumps(CONFIG)]
@@ -88,14 +81,14 @@ def test_killed_build_resumes_to_the_same_bytes(world, tmp_path):
     assert not (out / "journal.jsonl").exists()
 
 
-def test_build_stopped_right_after_a_place_file_keeps_its_stats(world, tmp_path, monkeypatch):
+def test_build_stopped_right_after_a_place_file_keeps_its_stats(tiny_world, tmp_path, monkeypatch):
     """The deterministic form of the SIGKILL race above: the build dies just after a place's file is
     written.  The re-run skips that place, so its stats must already be on disk -- the summary must
     be the uninterrupted build's."""
     from scenesig.mapping import store as store_mod
     from scenesig.mapping.build import build_map
 
-    runs, local = world
+    runs, local = tiny_world
     original = store_mod.MapWriter.write_place
 
     def write_then_die(self, index, data):
@@ -111,8 +104,8 @@ def test_build_stopped_right_after_a_place_file_keeps_its_stats(world, tmp_path,
     _assert_same_map(map_contents(local), map_contents(tmp_path / "m"), "build stopped after a place file")
 
 
-def test_build_summary_schema_and_values(world):
-    runs, local = world
+def test_build_summary_schema_and_values(tiny_world):
+    runs, local = tiny_world
     summary = json.loads((local / "build_summary.json").read_text())
     for key in ("places", "signatures_per_place_mean", "bytes_per_place_mean", "seconds_per_place_mean",
                 "landmark_depth_rel_error_median", "rejected"):
@@ -156,7 +149,7 @@ def test_build_summary_schema_and_values(world):
     assert sorted(s["place"] for s in lines) == [0, 1, 2]
 
 
-def test_stored_filters_detect_like_the_originals(world):
+def test_stored_filters_detect_like_the_originals(tiny_world):
     """The store keeps bank filters as float16 with fewer mantissa bits where the row error allows it:
     every detection over the place's window frames must stay where it was, at the same level."""
     from scenesig.mapping import places as places_mod
@@ -164,7 +157,7 @@ def test_stored_filters_detect_like_the_originals(world):
     from scenesig.mapping.store import decode_place, encode_place
     from scenesig.signatures.bank import Bank
 
-    runs, local = world
+    runs, local = tiny_world
     ref = runs[0]
     place = places_mod.define_places(ref, CONFIG["places"])[1]
     views = places_mod.training_views(place, runs, CONFIG["places"])
