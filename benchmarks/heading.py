@@ -26,6 +26,9 @@ Methods
 ``signatures``
     :class:`scenesig.signatures.heading.SignatureHeading` (leave-one-session-out banks for the sessions
     layout; augmented map images for the sequence layout).
+``signatures-xfeat``, ``signatures-hog+xfeat``
+    The same, with banks mined and detected on XFeat's dense descriptor map instead of HOG, or on both
+    stacked (mining's ``features``; :func:`scenesig.signatures.hog.describe_cells`).
 
 Output: a JSON file ``{"dataset", "pairs", "tolerance_px", "methods": {NAME: {"error_rate",
 "errors", "pairs", "seconds", ...}}}``, a printed table, and a figure
@@ -78,7 +81,10 @@ BASELINE_PRESETS = {
 POINT_METHODS = ("orb", "sift", "rootsift", "xfeat", "xfeat-1600")
 #: XFeat variants: keypoints per image (upstream's top-k, and the protocol's budget)
 XFEAT_BUDGETS = {"xfeat": 4096, "xfeat-1600": 1600}
-METHODS = POINT_METHODS + ("signatures",)
+#: Scene signatures and the cell descriptor each variant mines on (None: the settings' ``mining.features``,
+#: HOG by default; signatures.hog.describe_cells)
+SIGNATURE_METHODS = {"signatures": None, "signatures-xfeat": "xfeat", "signatures-hog+xfeat": "hog+xfeat"}
+METHODS = POINT_METHODS + tuple(SIGNATURE_METHODS)
 
 
 @dataclass
@@ -275,10 +281,15 @@ def _training_description(dataset: GriefDataset, cfg: dict, single: bool = False
 
 def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 1,
                    progress: bool = True, config: dict | None = None,
-                   single: bool = False) -> MethodResult:
-    """Estimate every pair with the scene-signature method (:mod:`scenesig.signatures.heading`)."""
+                   single: bool = False, features: str | None = None,
+                   name: str = "signatures") -> MethodResult:
+    """Estimate every pair with the scene-signature method (:mod:`scenesig.signatures.heading`);
+    ``features`` (if given) is the cell descriptor mined on, over the settings' ``mining.features``."""
     from scenesig.signatures.heading import SignatureHeading
 
+    if features is not None:
+        config = dict(config or {})
+        config["mining"] = {**dict(config.get("mining") or {}), "features": features}
     t0 = time.perf_counter()
     detail, extra = {}, {}
     est = SignatureHeading(dataset, config, n_jobs=n_jobs, progress=progress, single=single)
@@ -293,7 +304,18 @@ def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 
         extra["banks"] = len(stats)
         extra["mean_bank_size"] = float(np.mean(sizes))
         extra["mean_mining_seconds"] = float(np.mean([s.get("seconds", 0.0) for s in stats]))
+        n_live = sum(s.get("live_images", 0) for s in stats)
+        n_map = sum(s.get("map_images", 0) for s in stats)
+        if n_live:
+            extra["live_detect_seconds_per_image"] = sum(s.get("live_detect_seconds", 0.0) for s in stats) / n_live
+        if n_map:
+            extra["map_detect_seconds_per_image"] = sum(s.get("map_detect_seconds", 0.0) for s in stats) / n_map
     cfg = est.config
+    from scenesig.signatures.mining import resolve_config
+    extra["features"] = resolve_config(cfg["mining"])["features"]
+    if "xfeat" in extra["features"]:
+        from scenesig.signatures.xfeat import get_xfeat
+        extra["model_sha256"] = get_xfeat().sha256
     # the full resolved settings (the same for every folder) and what the training-data rule made of
     # them per bank
     extra["config"] = dict(cfg)
@@ -301,7 +323,7 @@ def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 
         extra["calibrated_banks"] = int(sum(bool(s.get("calibrated")) for s in stats))
     extra["training"] = _training_description(dataset, cfg, single)
     extra["jobs"] = n_jobs
-    return MethodResult("signatures", estimates, time.perf_counter() - t0, extra, detail)
+    return MethodResult(name, estimates, time.perf_counter() - t0, extra, detail)
 
 
 # ---------------------------------------------------------------------------------- figure
@@ -470,9 +492,10 @@ def run_benchmark(dataset_path, methods=("signatures", "orb", "sift"), json_path
     print(dataset.describe(), file=sys.stderr)
     results: dict[str, MethodResult] = {}
     for name in methods:
-        if name == "signatures":
+        if name in SIGNATURE_METHODS:
             r = run_signatures(dataset, pairs, n_jobs=n_jobs, progress=progress,
-                               config=signatures_config, single=single)
+                               config=signatures_config, single=single,
+                               features=SIGNATURE_METHODS[name], name=name)
         else:
             r = run_point_features(dataset, pairs, name, preset, default_config["n_features"],
                                    n_jobs, progress, keep_detail=set(fig_pairs))
@@ -512,9 +535,9 @@ def print_table(doc: dict, file=None) -> None:
     out = file or sys.stdout
     print(f"heading benchmark: {doc['dataset']}, {doc['pairs']} pairs, correct when within "
           f"{doc['tolerance_px']} px", file=out)
-    print(f"{'method':<12}{'errors':>8}{'pairs':>8}{'error rate':>12}{'seconds':>10}", file=out)
+    print(f"{'method':<22}{'errors':>8}{'pairs':>8}{'error rate':>12}{'seconds':>10}", file=out)
     for name, m in doc["methods"].items():
-        print(f"{name:<12}{m['errors']:>8d}{m['pairs']:>8d}{100 * m['error_rate']:>11.1f}%"
+        print(f"{name:<22}{m['errors']:>8d}{m['pairs']:>8d}{100 * m['error_rate']:>11.1f}%"
               f"{m['seconds']:>10.1f}", file=out)
 
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from scenesig.signatures import heading
 from scenesig.surveys.grief import load
+from scenesig.surveys.io import atomic_write_text
 
 CANDIDATES = (1.5, 3.0, 6.0, 12.0, 24.0, 1e6)      # 1e6: no spread weighting
 
@@ -96,7 +97,8 @@ def run(dataset, json_path=None, jobs: int = 1, records=None, live=None, reduced
     print(json.dumps(out, indent=1))
     if json_path:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).write_text(json.dumps(out, indent=1))
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(Path(json_path), json.dumps(out, indent=1))   # never half a file
     return out
 
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from scenesig.benchmarks import places
 from scenesig.surveys.grief import load
+from scenesig.surveys.io import atomic_write_text
 
 #: Candidate place descriptors (overrides of signatures.globaldesc.default_config).
 DESCRIPTORS = [{"width": 64, "cell": 8}, {"width": 96, "cell": 8}, {"width": 128, "cell": 16},
@@ -97,7 +98,8 @@ def run(dataset, json_path=None, jobs: int = 1, progress: bool = True, cache=Non
         from pathlib import Path
 
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).write_text(json.dumps(out, indent=1))
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(Path(json_path), json.dumps(out, indent=1))   # never half a file
     print(json.dumps({k: out[k] for k in ("descriptor_chosen", "chosen")}, indent=1))
     return out
 

@@ -21,6 +21,9 @@ Methods:
   (:mod:`scenesig.signatures.experience`, ``--config '{"signatures": {"single_experience": {...}}}'``).  Test images are never used in training.  Each classifier's best
   detection in the whole test image (no prior, all scales the bank searches) is a correspondence with its
   position in the training images (``nominal_xy``).
+* ``signatures-xfeat``, ``signatures-hog+xfeat``: the same banks mined and detected on XFeat's dense
+  descriptor map, or on HOG and XFeat stacked (mining's ``features``;
+  :func:`scenesig.signatures.hog.describe_cells`).
 * ``orb``, ``sift``: OpenCV features (2000 per image, rotation-invariant, OpenCV's default detector
   thresholds) matched with mutual nearest neighbours and Lowe's ratio test (0.8) against every training
   image; the training image with the most matches is kept (retrieval by match count, as hloc users rank
@@ -79,7 +82,10 @@ DEFAULT_EXCLUDE = ("courbevoie/20131029_085701", "courbevoie/20140409_082712")
 
 PERIODS = ("night", "twilight", "day")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
-METHODS = ("signatures", "orb", "sift", "xfeat")
+#: Scene-signature variants and the cell descriptor each mines on (None: the settings' ``mining.features``,
+#: HOG by default; signatures.hog.describe_cells)
+SIGNATURE_METHODS = {"signatures": None, "signatures-xfeat": "xfeat", "signatures-hog+xfeat": "hog+xfeat"}
+METHODS = tuple(SIGNATURE_METHODS) + ("orb", "sift", "xfeat")
 
 
 # ---------------------------------------------------------------------------------- data set
@@ -294,7 +300,8 @@ def run_benchmark(root, methods=("signatures", "orb", "sift"), train: str = "mul
     tol = float(cfg["tolerance_px"])
     results: dict[str, list[ImageResult]] = {m: [] for m in methods}
     seconds = {m: 0.0 for m in methods}
-    mining_stats = {}
+    mining_stats = {m: {} for m in methods if m in SIGNATURE_METHODS}
+    detect_seconds = {m: 0.0 for m in methods}
     # Images at processing scale, loaded once.
     cache = {}
 
@@ -312,7 +319,7 @@ def run_benchmark(root, methods=("signatures", "orb", "sift"), train: str = "mul
         test = [(f, *load(f)) for f in sc.test]
         for m in methods:
             t0 = time.perf_counter()
-            if m == "signatures":
+            if m in SIGNATURE_METHODS:
                 size = train_imgs[0].shape[1], train_imgs[0].shape[0]
                 negs = []
                 for other in scenes:
@@ -320,10 +327,12 @@ def run_benchmark(root, methods=("signatures", "orb", "sift"), train: str = "mul
                         continue
                     for f in other.train[: int(cfg["signatures"]["external_negatives"])]:
                         negs.append(cv2.resize(load(f)[0], size, interpolation=cv2.INTER_AREA))
-                bank, stats, exp = mine_scene_bank(train_imgs, negs, cfg, n_jobs=n_jobs)
-                mining_stats[sc.name] = {"classifiers": len(bank), "train_images": len(train_imgs),
-                                         "seconds": round(stats.seconds, 2),
-                                         "single_experience": exp["single"]}
+                bank, stats, exp = mine_scene_bank(train_imgs, negs, _with_features(cfg, SIGNATURE_METHODS[m]),
+                                                   n_jobs=n_jobs)
+                mining_stats[m][sc.name] = {"classifiers": len(bank), "train_images": len(train_imgs),
+                                            "seconds": round(stats.seconds, 2),
+                                            "single_experience": exp["single"],
+                                            "features": bank.hog.get("features", "hog")}
                 ref = train_imgs[0] if exp["colour_constancy"] else None
                 corr = lambda img, ref=ref: signature_correspondences(bank, img, ref)  # noqa: E731
             else:
@@ -331,7 +340,9 @@ def run_benchmark(root, methods=("signatures", "orb", "sift"), train: str = "mul
                 corr = lambda img, feats=feats, m=m: point_correspondences(  # noqa: E731
                     feats, _extract(img, m, cfg), {**cfg["points"], **cfg["xfeat"]})
             for f, img, s in test:
+                td = time.perf_counter()
                 tr, te = corr(img)
+                detect_seconds[m] += time.perf_counter() - td
                 tr, te = tr / s, te / s          # full-resolution pixels
                 ok = correct_mask(tr, te, tol)
                 results[m].append(ImageResult(sc.name, f.name, period_of(hour_of(f.name)),
@@ -347,19 +358,37 @@ def run_benchmark(root, methods=("signatures", "orb", "sift"), train: str = "mul
         "excluded": sorted(exclude or ()),
         "methods": {m: _method_summary(results[m], cfg, seconds[m]) for m in methods},
     }
-    if "signatures" in methods:
-        summary["methods"]["signatures"]["banks"] = mining_stats
-        summary["methods"]["signatures"]["config"] = cfg["signatures"]
+    n_test = max(1, summary["test_images"])
+    for m in methods:
+        # per test image: features and matching (signatures: detection), training excluded
+        summary["methods"][m]["seconds_per_test_image"] = detect_seconds[m] / n_test
+        if m in SIGNATURE_METHODS:
+            summary["methods"][m]["banks"] = mining_stats[m]
+            summary["methods"][m]["config"] = _with_features(cfg, SIGNATURE_METHODS[m])["signatures"]
+            summary["methods"][m]["mining_seconds_per_scene"] = float(np.mean(
+                [b["seconds"] for b in mining_stats[m].values()])) if mining_stats[m] else 0.0
+            if SIGNATURE_METHODS[m] and "xfeat" in SIGNATURE_METHODS[m]:
+                from scenesig.signatures.xfeat import get_xfeat
+                summary["methods"][m]["model_sha256"] = get_xfeat().sha256
     for m in methods:
         if m == "xfeat":
             summary["methods"][m]["config"] = {**cfg["xfeat"], "xfeat": xfeat_info,
                                                "matcher": "mutual nearest neighbour, cosine similarity > min_cossim",
                                                "retrieval": "training image with most matches"}
-        elif m != "signatures":
+        elif m not in SIGNATURE_METHODS:
             summary["methods"][m]["config"] = {**{k: v for k, v in cfg["points"].items()
                                                   if k not in ("orb", "sift")}, m: cfg["points"][m],
                                                "retrieval": "training image with most matches"}
     return summary, results, scenes
+
+
+def _with_features(cfg: dict, features: str | None) -> dict:
+    """``cfg`` with the signatures' mining ``features`` set (None: unchanged)."""
+    if features is None:
+        return cfg
+    sig = dict(cfg["signatures"])
+    sig["mining"] = {**dict(sig.get("mining") or {}), "features": features}
+    return {**cfg, "signatures": sig}
 
 
 def _merged(base: dict, over: dict) -> dict:
@@ -474,7 +503,8 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p = p or argparse.ArgumentParser(prog="scenesig bench webcam", description=__doc__.split("\n\n")[0])
     p.add_argument("dir", help="folder with one sub-folder of images per scene (e.g. ../shared/data/webcam)")
     p.add_argument("--methods", default="signatures,orb,sift",
-                   help="comma-separated: signatures,orb,sift,xfeat (xfeat needs its model file)")
+                   help="comma-separated: signatures,signatures-xfeat,signatures-hog+xfeat,orb,sift,xfeat "
+                        "(the xfeat ones need its model file)")
     p.add_argument("--json", required=True, help="output JSON file")
     p.add_argument("--train", choices=["multi", "single"], default="multi")
     p.add_argument("--figure", default=None, help="figure folder (default: none)")

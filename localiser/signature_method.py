@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from scenesig.mapping.store import MapStore
+from scenesig.signatures.detection import check_cell_model
 from scenesig.signatures.hog import ScaledImages, load_compiled
 from scenesig.surveys.geometry import Camera
 from scenesig.surveys.settings import merge_settings
@@ -65,14 +66,23 @@ class SignatureLocaliser(WeakLocaliser):
             if len(lp.bank):
                 self._hog = dict(lp.bank.hog)
                 self.color = bool(self._hog.get("color", False))
+                # banks mined on XFeat cells need that network: a missing or different model file
+                # stops here, before the replay starts, not at the first detection
+                check_cell_model(lp.bank)
                 break
 
     def prefetch(self, place):
         self.detector.prefetch(place)
 
     def method_config(self) -> dict:
+        features = (self._hog or {}).get("features", "hog")
+        extra = {}
+        if "xfeat" in features:
+            from scenesig.signatures.xfeat import get_xfeat
+            extra["model_sha256"] = get_xfeat().sha256
         return {"method": self.name, "family": "scene signatures (McManus et al. 2015)",
                 "map": "one classifier bank per place, mined from every training run",
+                "features": features, **extra,
                 "prior_gating": self.prior_gating, "detector": dict(self.detector.config),
                 "estimator": "robust Levenberg-Marquardt with the motion prior (eq. 10), Huber",
                 "solver": dict(self.solver_config)}

@@ -333,6 +333,8 @@ def _build_place(place, views, negatives, config):
              "rejected": mp.rejected,
              "depth_rel_errors": rel_err, "depth_truth_spread": truth_spread, "signatures": int(len(keep)),
              "georef_runs_ok": int(sum(bool(o["ok"]) for o in georef_obs)),
+             # the cell descriptor the bank was mined on (mining's ``features``)
+             "features": str(kept_bank.hog.get("features", "hog")),
              # build time per layer (signatures: mining, refinement, georeferencing observations)
              "seconds_by_layer": seconds}
     return data, stats

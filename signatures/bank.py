@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scenesig.signatures.hog import FEATURE_DIM, HogPyramid, default_config as hog_default, level_scale
+from scenesig.signatures.hog import HogPyramid, default_config as hog_default, feature_dim, level_scale
 
 __all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce", "limit_blas_threads"]
 
@@ -49,7 +49,8 @@ class Classifier:
 
     Attributes
     ----------
-    weights : ndarray, shape (fh, fw, 31), float32
+    weights : ndarray, shape (fh, fw, D), float32
+        (D: 31 for HOG cells, :func:`scenesig.signatures.hog.feature_dim` of ``hog``)
         Filter; the score of a window is ``sum(weights * window) + bias``.
     bias : float
     level : int
@@ -94,9 +95,10 @@ class Classifier:
 
     def __post_init__(self):
         w = np.asarray(self.weights, dtype=np.float32)
-        if w.ndim != 3 or w.shape[2] != FEATURE_DIM or w.shape[0] < 1 or w.shape[1] < 1:
-            raise ValueError(f"classifier weights must have shape (fh, fw, {FEATURE_DIM}), "
-                             f"got {w.shape}")
+        d = feature_dim(self.hog)
+        if w.ndim != 3 or w.shape[2] != d or w.shape[0] < 1 or w.shape[1] < 1:
+            raise ValueError(f"classifier weights must have shape (fh, fw, {d}) for "
+                             f"{self.hog.get('features', 'hog')} cells, got {w.shape}")
         self.weights = w
 
     @property
@@ -196,6 +198,10 @@ class Bank:
             "hog_color": np.array(bool(self.hog["color"])),
             "image_size": np.array(self.image_size if self.image_size else (-1, -1), dtype=np.int32),
         }
+        if self.hog.get("features", "hog") != "hog":
+            # only learned cells write these: a HOG bank's file stays as it always was
+            out["hog_features"] = np.array(str(self.hog["features"]))
+            out["hog_xfeat_weight"] = np.array(float(self.hog.get("xfeat_weight", 1.0)))
         for k, v in self.meta.items():
             out[f"meta_{k}"] = np.asarray(v)
         return out
@@ -214,9 +220,15 @@ class Bank:
         missing = [k for k in need if k not in d]
         if missing:
             raise ValueError(f"bank arrays lack {', '.join(missing)}")
+        # banks stored before the cell descriptor was a setting hold HOG cells
+        hog = {"cell": int(d["hog_cell"]), "scales_per_octave": int(d["hog_scales_per_octave"]),
+               "clip": float(d["hog_clip"]), "color": bool(d["hog_color"]),
+               "features": str(d.get("hog_features", hog_default["features"])),
+               "xfeat_weight": float(d.get("hog_xfeat_weight", hog_default["xfeat_weight"]))}
+        dim = feature_dim(hog)
         fs = np.asarray(d["filter_shape"], dtype=int).reshape(-1, 2)
         n = len(fs)
-        sizes = fs[:, 0] * fs[:, 1] * FEATURE_DIM
+        sizes = fs[:, 0] * fs[:, 1] * dim
         flat = np.asarray(d["weights"], dtype=np.float32)
         if flat.size != sizes.sum():
             raise ValueError(f"bank weights hold {flat.size} values but the filter shapes need "
@@ -225,8 +237,6 @@ class Bank:
             a = np.asarray(d[key])
             if (a.shape[0] if a.ndim else 1) != n:
                 raise ValueError(f"bank array {key!r} does not have {n} rows")
-        hog = {"cell": int(d["hog_cell"]), "scales_per_octave": int(d["hog_scales_per_octave"]),
-               "clip": float(d["hog_clip"]), "color": bool(d["hog_color"])}
         kind_names = [str(s) for s in np.asarray(d.get("kind_names", np.array([], dtype=str)))]
         kind = np.asarray(d.get("kind", np.full(n, -1)), dtype=int)
         sidx = np.asarray(d.get("shape_index", np.full(n, -1)), dtype=int)
@@ -236,7 +246,7 @@ class Bank:
         cs = []
         for i in range(n):
             cs.append(Classifier(
-                weights=flat[offs[i]:offs[i + 1]].reshape(fs[i, 0], fs[i, 1], FEATURE_DIM),
+                weights=flat[offs[i]:offs[i + 1]].reshape(fs[i, 0], fs[i, 1], dim),
                 bias=float(np.asarray(d["bias"])[i]), level=int(np.asarray(d["level"])[i]),
                 box=tuple(float(v) for v in np.asarray(d["box"], dtype=float).reshape(n, 4)[i]),
                 nominal_xy=tuple(float(v) for v in np.asarray(d["nominal_xy"]).reshape(n, 2)[i]),

@@ -34,8 +34,8 @@ import numpy as np
 from scenesig.surveys.settings import merge_settings
 
 from scenesig.signatures.bank import Classifier, _sigmoid
-from scenesig.signatures.hog import HogPyramid, build_pyramid, default_config as hog_default
-from scenesig.signatures.hog import (FEATURE_DIM, REGION_MARGIN_CELLS, assemble_pyramid, build_level, level_plan,
+from scenesig.signatures.hog import HogPyramid, build_pyramid, default_config as hog_default, learned
+from scenesig.signatures.hog import (REGION_MARGIN_CELLS, assemble_pyramid, build_level, level_plan,
                                      level_size, thread_map, as_hog_input, window_cell)
 
 __all__ = ["Detections", "default_config", "detect", "pyramid", "score_maps_bruteforce", "limit_blas_threads"]
@@ -134,10 +134,33 @@ def pyramid(bank, image: np.ndarray, scale_search: int = 1, levels=None, windows
             threads: int = 1) -> HogPyramid:
     """:meth:`scenesig.signatures.bank.Bank.pyramid` of ``bank`` (the parameters are documented there)."""
     levels, windows = _check_search(bank, levels, windows, scale_search)
+    check_cell_model(bank)
     h, w = np.asarray(image).shape[:2]
     table = None if windows is None else _pairs(bank, (w, h), levels, windows)
     need = sorted(set().union(*levels)) if len(bank) else []
     return build_pyramid(image, bank.hog, **_pyramid_extent(table, need, windows), threads=threads)
+
+
+def check_cell_model(bank) -> None:
+    """Refuse a bank mined on XFeat cells when this process's XFeat model is another file: its
+    filters would be scored on descriptors they were never trained on (confident nonsense).
+
+    Raises
+    ------
+    scenesig.surveys.errors.DataError
+        (a ValueError) naming the model file found and both models' sha256.
+    """
+    want = bank.meta.get("xfeat_sha256")
+    if not want or not learned(bank.hog):
+        return
+    from scenesig.signatures.xfeat import get_xfeat
+    from scenesig.surveys.errors import DataError
+
+    model = get_xfeat()
+    if model.sha256 != want:
+        raise DataError(model.path, f"this bank was mined on XFeat cells of model sha256 {want[:12]}..., but this "
+                                    f"model file is {model.sha256[:12]}...: point $SCENESIG_XFEAT_MODEL at the "
+                                    f"model the map was built with")
 
 
 def _check_search(bank, levels, windows, scale_search: int):
@@ -173,6 +196,7 @@ def detect(bank, image, windows=None, top_n: int = 1, config: dict | None = None
     if top_n < 1:
         raise ValueError(f"top_n must be >= 1, got {top_n}")
     levels, windows = _check_search(bank, levels, windows, int(cfg["scale_search"]))
+    check_cell_model(bank)
     threads = int(cfg["threads"])
     with limit_blas_threads(cfg["blas_threads"]):
         if isinstance(image, HogPyramid):
@@ -363,21 +387,22 @@ def _score_group(feat, fw, members, classifiers, k) -> list:
     C1 += fw                                                              # exclusive
     R1, C1 = min(R1, feat.shape[0]), min(C1, feat.shape[1])
     nr, ncol = R1 - R0, C1 - C0 - fw + 1
-    # Unroll along x: row (y, x) holds cells x .. x + fw - 1 of row y (fw * 31 values).  (A strided
+    # Unroll along x: row (y, x) holds cells x .. x + fw - 1 of row y (fw * D values).  (A strided
     # view built directly -- sliding_window_view's checks cost more than the copy at these sizes.)
     if not feat.flags.c_contiguous:
         feat = np.ascontiguousarray(feat)
     t0, t1, t2 = feat.strides
-    x_unrolled = np.ndarray((nr, ncol, fw, FEATURE_DIM), feat.dtype, feat, R0 * t0 + C0 * t1, (t0, t1, t1, t2)) \
-        .reshape(nr * ncol, fw * FEATURE_DIM)
+    D = feat.shape[2]
+    x_unrolled = np.ndarray((nr, ncol, fw, D), feat.dtype, feat, R0 * t0 + C0 * t1, (t0, t1, t1, t2)) \
+        .reshape(nr * ncol, fw * D)
     rows, offs = [], []
     o = 0
     for m in members:
         w = classifiers[m[0]].weights
-        rows.append(w.reshape(w.shape[0], fw * FEATURE_DIM))
+        rows.append(w.reshape(w.shape[0], fw * D))
         offs.append(o)
         o += w.shape[0]
-    # (fw*31, sum fh); one member's filter is used in place (the same layout as the stacked copy)
+    # (fw*D, sum fh); one member's filter is used in place (the same layout as the stacked copy)
     wmat = (rows[0] if len(rows) == 1 else np.concatenate(rows, axis=0)).T
     resp = (x_unrolled @ wmat).reshape(nr, ncol, o)             # row responses
     s0, s1, s2 = resp.strides

@@ -337,20 +337,29 @@ def _run_group(ds, g: _Group, cfg: dict):
     live_top = max(3, int(cfg["live_top_n"]))
     det_live = {}
     rm = float(cfg["map_search_px"]) * scale
+    t_live, t_map = 0.0, 0.0
     for key in g.pairs:
         _, i, j = key
         if j not in det_live:
             live = _load(place, j, scale)
             if st["colour_constancy"]:
                 live = local_exact_histogram_match(live, images[0], (5, 5))
+            t0 = time.perf_counter()
             live_pyr = hogmod.build_pyramid(live, bank.hog, levels=bank.levels())
             det_live[j] = bank.detect(live_pyr, windows=live_win, top_n=live_top)
+            t_live += time.perf_counter() - t0
         img = images[g.train.index(i)] if i in g.train else _load(place, i, scale)
         cx = nom[:, 0] + map_offset[i]
         win = np.stack([cx - rm, nom[:, 1] - rm, cx + rm, nom[:, 1] + rm], axis=1)
+        t0 = time.perf_counter()
         det_map = bank.detect(hogmod.build_pyramid(img, bank.hog, levels=bank.levels()),
                               windows=win)
+        t_map += time.perf_counter() - t0
         recs[key] = _vote_pair(det_map, det_live[j], cfg, scale, spread)
+    # detection cost: a live image is searched over its whole width, the map image near the trained
+    # positions (features plus scoring, per image)
+    st["live_detect_seconds"], st["live_images"] = t_live, len(det_live)
+    st["map_detect_seconds"], st["map_images"] = t_map, len(g.pairs)
     return recs, st
 
 

@@ -18,6 +18,11 @@ the four nearest cells, then normalised by the four 2x2 blocks the cell belongs 
 0.2.  Cell ``(r, c)`` covers pixels ``[8r, 8r + 8) x [8c, 8c + 8)`` of its level (no border is
 dropped; blocks at the edge reuse the edge cell's energy).
 
+Other cell descriptors (the ``features`` setting; :func:`describe_cells`): XFeat's learned dense
+descriptors, whose 1/8-resolution map gives one 64-d descriptor per 8-pixel cell, alone or stacked after
+FHOG.  Everything downstream -- pyramid, shapes, filters, detection -- reads cells of any length
+(``docs/learned_cells.md``).
+
 Pyramid levels are indexed by an integer ``k`` with scale ``2 ** (-k / scales_per_octave)``: ``k = 0``
 is the input resolution, ``k = scales_per_octave`` half of it.  A classifier stores its nominal
 ``k`` and searches ``k - 1 .. k + 1``, so levels are exact and shared by all classifiers.
@@ -43,7 +48,8 @@ import numpy as np
 from scenesig.signatures import _hog_kernel
 from scenesig.surveys.settings import merge_settings
 
-__all__ = ["default_config", "FEATURE_DIM", "fhog", "HogPyramid", "build_pyramid", "level_scale",
+__all__ = ["default_config", "FEATURE_DIM", "FEATURE_KINDS", "feature_dim", "learned", "describe_cells", "fhog",
+           "HogPyramid", "build_pyramid", "level_scale",
            "level_size", "window_cell", "resize_area_region", "to_gray_float", "REGION_MARGIN_CELLS",
            "level_plan", "build_level", "assemble_pyramid", "thread_map", "set_parallel_section", "ScaledImages", "load_compiled"]
 
@@ -55,7 +61,18 @@ default_config = {
     "clip": 0.2,               # FHOG truncation of normalised bin values
     "color": False,            # True: per pixel, gradient of the colour channel with the largest
                                # magnitude (FHOG); False: gradient of the gray image (2x faster)
+    # What describes a cell (see describe_cells): "hog" (FHOG, the paper's), "xfeat" (XFeat's
+    # dense 64-d descriptors, unit length per cell) or "hog+xfeat" (both, stacked).  Mining's
+    # ``features`` setting sets it; every classifier stores it, so detection describes alike.
+    "features": "hog",
+    "xfeat_weight": 1.0,       # hog+xfeat: length of the XFeat part of a cell (the HOG part as FHOG)
 }
+
+#: The cell descriptors :func:`describe_cells` knows.
+FEATURE_KINDS = ("hog", "xfeat", "hog+xfeat")
+
+#: Length of an XFeat dense descriptor (the network's 64-channel map at 1/8 resolution).
+XFEAT_DIM = 64
 
 #: Length of a cell's feature vector.
 FEATURE_DIM = 31
@@ -169,7 +186,8 @@ class ScaledImages:
         return self._levels.get(size)
 
     def _same_hog(self, cfg: dict) -> bool:
-        return all(self.config.get(key) == cfg.get(key) for key in ("cell", "clip", "color"))
+        return all(self.config.get(key) == cfg.get(key)
+                   for key in ("cell", "clip", "color", "features", "xfeat_weight"))
 
     def features(self, size, cfg: dict) -> np.ndarray | None:
         """The whole level's features if it was described with the HOG parameters ``cfg``, else None."""
@@ -343,6 +361,51 @@ def fhog(image: np.ndarray, cell: int = 8, clip: float = 0.2, color: bool = Fals
     return out
 
 
+def feature_dim(config: dict | None = None) -> int:
+    """Length of a cell's descriptor under ``config`` (HOG parameters): 31, 64 or 95."""
+    kind = _feature_kind(config)
+    return (FEATURE_DIM if "hog" in kind.split("+") else 0) + (XFEAT_DIM if "xfeat" in kind.split("+") else 0)
+
+
+def _feature_kind(config: dict | None) -> str:
+    kind = str((config or {}).get("features", "hog"))
+    if kind not in FEATURE_KINDS:
+        raise ValueError(f"unknown cell features {kind!r}: expected one of {', '.join(FEATURE_KINDS)}")
+    return kind
+
+
+def learned(config: dict | None) -> bool:
+    """True when cells are (partly) described by a network, whose descriptor of a cell depends on
+    the whole image: such levels are always described whole (no regions)."""
+    return "xfeat" in _feature_kind(config)
+
+
+def describe_cells(level: np.ndarray, cfg: dict) -> np.ndarray:
+    """The cell descriptors of one pyramid level (an image resized to the level), shape
+    ``(H // cell, W // cell, feature_dim(cfg))``, float32.
+
+    ``features`` "hog" is :func:`fhog`.  "xfeat" is XFeat's dense descriptor map (Potje et al.,
+    CVPR 2024), whose 1/8 resolution makes one descriptor per 8-pixel cell, each scaled to unit
+    length as XFeat's own descriptors are (:meth:`scenesig.signatures.xfeat.XFeat.cells`); the network
+    runs on each level, as FHOG does, so a level holds what the network sees at that scale.
+    "hog+xfeat" stacks both, FHOG first (so its texture columns stay 27-30), the XFeat part scaled to
+    length ``xfeat_weight``.
+    """
+    kind = _feature_kind(cfg)
+    cell = int(cfg["cell"])
+    parts = []
+    if "hog" in kind.split("+"):
+        parts.append(fhog(level, cell, float(cfg["clip"]), bool(cfg["color"])))
+    if "xfeat" in kind.split("+"):
+        from scenesig.signatures.xfeat import get_xfeat
+
+        x = get_xfeat().cells(level, cell)
+        if kind != "xfeat":
+            x *= np.float32(cfg.get("xfeat_weight", 1.0))
+        parts.append(x)
+    return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=2)
+
+
 # ------------------------------------------------------------------------------ regions of a level
 #: Cells computed around a requested region of a level: a cell's features depend on the gradients
 #: of the half-cells bordering it (bilinear votes) and on its neighbours' energies (block
@@ -458,7 +521,7 @@ def _whole_level(img, size: tuple[int, int], cfg: dict) -> np.ndarray:
         base, lvl = _level_pixels(img, size)
         if lvl is None:
             lvl = cv2.resize(base, tuple(size), interpolation=_INTERP)
-        feat = fhog(lvl, int(cfg["cell"]), float(cfg["clip"]), bool(cfg["color"]))
+        feat = describe_cells(lvl, cfg)
         if scaled:
             img.keep(size, cfg, feat)
     return feat
@@ -495,7 +558,7 @@ def _level_region(img, size: tuple[int, int], box, cfg: dict, full_fraction: flo
     (one OpenCV resize is cheaper then) and ``valid`` is None.
     """
     cell, clip, color = int(cfg["cell"]), float(cfg["clip"]), bool(cfg["color"])
-    extent = _region_extent(img.shape[1::-1], size, box, cell, full_fraction)
+    extent = None if learned(cfg) else _region_extent(img.shape[1::-1], size, box, cell, full_fraction)
     if extent is None:
         return _whole_level(img, size, cfg), None
     (a0, a1, b0, b1), (e0, e1, g0, g1) = extent
@@ -523,7 +586,8 @@ class HogPyramid:
     Attributes
     ----------
     levels : dict[int, ndarray]
-        Level index ``k`` -> features (Hc, Wc, 31) float32 of the image resized by
+        Level index ``k`` -> features (Hc, Wc, D) float32 (D = :func:`feature_dim` of ``config``: 31
+        for HOG) of the image resized by
         ``2 ** (-k / scales_per_octave)``.
     image_size : tuple of int
         (width, height) of the input image in pixels.
@@ -586,8 +650,10 @@ class HogPyramid:
         return window_cell(x, y, self.scale_xy(k), self.cell, fh, fw)
 
     def matches(self, config: dict) -> bool:
-        """True if this pyramid was built with the HOG parameters in ``config``."""
-        return all(self.config.get(key) == config.get(key) for key in default_config)
+        """True if this pyramid was built with the HOG parameters in ``config`` (a missing cell
+        descriptor setting is the default's, as in banks stored before it existed)."""
+        return all(self.config.get(key, default_config[key]) == config.get(key, default_config[key])
+                   for key in default_config)
 
 
 def build_pyramid(image: np.ndarray, config: dict | None = None, levels=None, regions: dict | None = None,

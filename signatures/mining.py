@@ -69,6 +69,9 @@ log = logging.getLogger(__name__)
 
 #: Mining parameters (paper values where the paper gives one).
 default_config = {
+    # What describes a cell: "hog" (the paper's FHOG), "xfeat" (XFeat's dense descriptors) or
+    # "hog+xfeat" (stacked); sets the HOG configuration's ``features`` (signatures.hog.describe_cells)
+    "features": "hog",
     "hog": {},                    # overrides of signatures.hog.default_config
     "shapes": None,               # candidate template config (None: signatures.shapes default, 296)
     "max_filter_cells": 80,       # filter area bound that selects each shape's nominal level
@@ -152,7 +155,18 @@ class MiningStats:
 def resolve_config(config: dict | None = None) -> dict:
     """Every mining setting, its HOG's included: ``config`` (overrides of :data:`default_config`) resolved."""
     cfg = merge_settings(default_config, config, "mining", open=("hog",))
-    cfg["hog"] = merge_settings(hogmod.default_config, cfg["hog"] or None, "HOG")
+    hog_given = dict(cfg["hog"] or {})
+    if "features" in hog_given and hog_given["features"] != cfg["features"]:
+        raise ValueError(f"mining features {cfg['features']!r} and hog features {hog_given['features']!r} "
+                         f"disagree: set the cell descriptor once, as mining's 'features'")
+    hog_given["features"] = cfg["features"]
+    cfg["hog"] = merge_settings(hogmod.default_config, hog_given, "HOG")
+    hogmod.feature_dim(cfg["hog"])       # an unknown descriptor fails here, before any work
+    if cfg["min_texture"] > 0 and cfg["features"] == "xfeat":
+        raise ValueError("min_texture reads FHOG's texture columns, which XFeat cells alone do not have: "
+                         "use features 'hog' or 'hog+xfeat'")
+    if cfg["whiten"] and cfg["features"] != "hog":
+        raise ValueError("whitening uses the packaged HOG background statistics: it needs features 'hog'")
     if cfg["n_partitions"] < 2:
         raise ValueError("n_partitions must be >= 2")
     if cfg["min_nominal_level"] < cfg["scale_search"]:
@@ -251,9 +265,9 @@ def _window_view(feat: np.ndarray, fh: int, fw: int) -> np.ndarray:
 
 
 def _windows_at(feat: np.ndarray, rows, cols, fh: int, fw: int) -> np.ndarray:
-    """Feature vectors (n, fh * fw * 31) of the windows with top-left cells (rows, cols)."""
+    """Feature vectors (n, fh * fw * D) of the windows with top-left cells (rows, cols)."""
     return _window_view(feat, fh, fw)[np.asarray(rows), np.asarray(cols)].reshape(
-        len(rows), fh * fw * hogmod.FEATURE_DIM)
+        len(rows), fh * fw * feat.shape[2])
 
 
 # ---------------------------------------------------------------------------------- per shape
@@ -267,6 +281,11 @@ class _Place:
     neg_pyramids: list
     cfg: dict
     seed: int
+
+    @property
+    def dim(self) -> int:
+        """Length of a cell's descriptor (31 for HOG)."""
+        return hogmod.feature_dim(self.cfg["hog"])
 
 
 def _candidates(pd: _Place, box, k_n: int, fh: int, fw: int):
@@ -312,7 +331,7 @@ def _candidates(pd: _Place, box, k_n: int, fh: int, fw: int):
     if not ranges:
         return None
     # One allocation, filled window row by window row (the windows overlap: unrolling is a copy).
-    xc = np.empty((start, fh * fw * hogmod.FEATURE_DIM), np.float32)
+    xc = np.empty((start, fh * fw * pd.dim), np.float32)
     meta = np.empty((start, 4), np.int64)
     centres = np.empty((start, 2))
     o = 0
@@ -405,7 +424,7 @@ def _negatives(pd: _Place, box, k_n, fh, fw, n_per_image, rng):
                 rr = rng.integers(0, feat.shape[0] - fh + 1, cnt)
                 cc = rng.integers(0, feat.shape[1] - fw + 1, cnt)
                 ext.append(_windows_at(feat, rr, cc, fh, fw))
-    D = fh * fw * hogmod.FEATURE_DIM
+    D = fh * fw * pd.dim
     local = np.concatenate(feats) if feats else np.zeros((0, D), np.float32)
     owner = np.concatenate(owner) if owner else np.zeros(0, int)
     extx = np.concatenate(ext) if ext else np.zeros((0, D), np.float32)
@@ -496,7 +515,8 @@ def _mine_shape(pd: _Place, s_idx: int, box, kind: str, octave: int = 0):
     if len(init) < 2 or any(len(p) < 1 for p in part_imgs):
         return "no_data", None, {"steps": 0}
     if cfg["min_texture"] > 0:
-        tex = xc[init].reshape(len(init), fh * fw, hogmod.FEATURE_DIM)[:, :, 27:].mean()
+        # FHOG's texture columns (27-30; first in a stacked cell)
+        tex = xc[init].reshape(len(init), fh * fw, -1)[:, :, 27:hogmod.FEATURE_DIM].mean()
         if tex < cfg["min_texture"]:
             return "textureless", None, {"steps": 0}
     rng = np.random.default_rng([pd.seed, s_idx])
@@ -567,7 +587,7 @@ def _mine_shape(pd: _Place, s_idx: int, box, kind: str, octave: int = 0):
     scales = np.array([pd.pyramids[int(i)].scale(int(k)) for i, k in pm[:, :2]])
     nominal = np.median(ref_xy, axis=0)
     clf = Classifier(
-        weights=w.reshape(fh, fw, hogmod.FEATURE_DIM), bias=b, level=k_n,
+        weights=w.reshape(fh, fw, pd.dim), bias=b, level=k_n,
         box=tuple(float(v) for v in box),
         nominal_xy=(float(nominal[0]), float(nominal[1])),
         nominal_scale=float(np.median(scales)), calibration=calib, hog=dict(cfg["hog"]),
@@ -755,4 +775,8 @@ def mine_place(images, offsets=None, config: dict | None = None, negatives=None,
         pyramid_seconds=t_pyr, partitions=[p.tolist() for p in parts],
         firings={r[0]: r[3]["firings"] for r in results if r[1] == "converged"})
     bank = Bank(classifiers, image_size=size)
+    if hogmod.learned(cfg["hog"]):
+        # which network described the cells: detection refuses another (detection.check_cell_model)
+        from scenesig.signatures.xfeat import get_xfeat
+        bank.meta["xfeat_sha256"] = get_xfeat().sha256
     return bank, stats

@@ -173,6 +173,9 @@ def whiten_level(feat: np.ndarray, radius: int = 1, reg: float = 0.1, path: str 
 def whiten_pyramid(pyr: hogmod.HogPyramid, radius: int = 1, reg: float = 0.1,
                    path: str | None = None) -> hogmod.HogPyramid:
     """A copy of ``pyr`` with every level whitened (:func:`whiten_level`)."""
+    if pyr.config.get("features", "hog") != "hog":
+        raise ValueError(f"the background statistics are of HOG cells; this pyramid holds "
+                         f"{pyr.config['features']} cells")
     levels, regions = {}, {}
     for k, f in pyr.levels.items():
         levels[k], v = whiten_level(f, radius, reg, path, pyr.regions.get(k))

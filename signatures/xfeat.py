@@ -360,6 +360,37 @@ class XFeat:
         return DenseMaps(out["descriptors"], out["logits"], out["reliability"], (wc * STRIDE, hc * STRIDE),
                          scale, (W, H))
 
+    def cells(self, image: np.ndarray, cell: int = STRIDE) -> np.ndarray:
+        """The dense descriptor map as cell features: ``(H // 8, W // 8, 64)`` float32, unit length
+        per cell (as upstream normalises its sampled descriptors), cell ``(r, c)`` covering pixels
+        ``[8r, 8r + 8) x [8c, 8c + 8)`` like an FHOG cell (:func:`scenesig.signatures.hog.describe_cells`).
+
+        An image smaller than the network's 640 x 640 input is extended by mirroring, not by zeros:
+        the network normalises its input over the whole tile (instance normalisation), so zero
+        padding would change every cell's descriptor with the size of the image -- with each level
+        of a pyramid differently.
+        """
+        if int(cell) != STRIDE:
+            raise ValueError(f"XFeat cells are {STRIDE} pixels (its map is at 1/{STRIDE} resolution), got {cell}")
+        if self.config["fit"] != "tile":
+            raise ValueError("XFeat cells need fit='tile' (the map at the image's own resolution)")
+        g = np.asarray(image, np.float32)
+        if g.ndim == 3:
+            g = g.mean(axis=2)
+        if g.ndim != 2:
+            raise ValueError(f"expected a 2-D gray or 3-channel image, got shape {np.shape(image)}")
+        H, W = g.shape
+        hc, wc = H // STRIDE, W // STRIDE
+        if hc < 1 or wc < 1:
+            raise ValueError(f"image {g.shape} is smaller than one {STRIDE}-px cell")
+        ph, pw = max(0, INPUT_SIZE - H), max(0, INPUT_SIZE - W)
+        if ph or pw:
+            g = np.pad(g, ((0, ph), (0, pw)), mode="symmetric")
+        d = self.dense(g).descriptors[:, :hc, :wc]
+        out = np.ascontiguousarray(np.moveaxis(d, 0, 2), np.float32)
+        out /= np.maximum(np.linalg.norm(out, axis=2, keepdims=True), np.float32(1e-12))
+        return out
+
     def detect_and_compute(self, image: np.ndarray, top_k: int | None = None):
         """``(xy, scores, descriptors)`` of an image (:func:`postprocess` of :meth:`dense`)."""
         cfg = self.config

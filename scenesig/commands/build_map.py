@@ -31,6 +31,10 @@ def register(groups):
                         "places) and the point-feature baselines orb, sift, xfeat (the reference run's keyframe) "
                         "and orb-all, sift-all, xfeat-all (every training run's keyframe); 'all' for every one. "
                         "Default: signatures, what the default method needs")
+    p.add_argument("--features", choices=["hog", "xfeat", "hog+xfeat"], default=None,
+                   help="what the signature banks are mined on: HOG cells (default, the paper's), XFeat's dense "
+                        "descriptors, or both stacked (the XFeat ones need its model: $SCENESIG_XFEAT_MODEL); the "
+                        "same as --config '{\"mining\": {\"features\": ...}}'")
     p.add_argument("--skip-corrupt", action="store_true",
                    help="leave out frames whose image is truncated or corrupt (counted in build_summary.json) "
                         "instead of stopping")
@@ -71,6 +75,8 @@ def run(args) -> int:
             return 2
     if args.frames_per_run is not None:
         config["frames_per_run"] = int(args.frames_per_run)
+    if args.features is not None:
+        config["mining"] = {**dict(config.get("mining") or {}), "features": args.features}
     try:
         resolve_config(apply_preset("build", config, args.preset))     # a misspelt option: exit 2, nothing read
     except (TypeError, ValueError) as exc:
