@@ -17,8 +17,8 @@ def register(groups):
     p.add_argument("--camera-hz", type=float, default=None,
                    help="camera rate of the simulated runs (default 10 Hz; the detector runs at 5 Hz either way)")
     p.add_argument("--methods", default=None, metavar="M,M,...",
-                   help="localisation methods (default signatures,orb,sift,orb-all,sift-all,xfeat-all); the map "
-                        "holds the layers these need")
+                   help="localisation methods (default signatures,orb,sift,orb-all,sift-all,xfeat-all,hybrid; "
+                        "xfeat-all where the XFeat model is found); the map holds the layers these need")
     p.add_argument("--lifelong", action="store_true",
                    help="then the lifelong-map stage: an unseen condition's run A updates the map; run B of it "
                         "and another live run are localised before and after (scenesig/lifelong.py)")
