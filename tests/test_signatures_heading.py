@@ -56,6 +56,23 @@ def test_leave_one_session_out_bank_on_stromovka(grief_root):
     assert rec.map_boxes.shape == rec.live_boxes.shape == (rec.bank_size, 4)
 
 
+def test_bench_variant_on_learned_cells_estimates_stromovka_and_reports_its_cost(grief_root, xfeat_model,
+                                                                                 monkeypatch):
+    """``signatures-hog+xfeat`` through the benchmark's method runner: one leave-one-session-out bank."""
+    from scenesig.benchmarks.heading import SIGNATURE_METHODS, run_signatures
+
+    monkeypatch.setenv("SCENESIG_XFEAT_MODEL", str(xfeat_model))
+    ds = _stromovka(grief_root)
+    pairs = [p for p in ds.pairs() if p.place == 0 and p.live == 3]
+    r = run_signatures(ds, pairs, progress=False, features=SIGNATURE_METHODS["signatures-hog+xfeat"],
+                       name="signatures-hog+xfeat")
+    truth = np.array([ds.truth(p) for p in pairs])
+    assert np.sum(np.abs(r.estimates - truth) < 20) >= len(pairs) - 1, r.estimates - truth
+    assert r.name == "signatures-hog+xfeat" and r.extra["features"] == "hog+xfeat"
+    assert len(r.extra["model_sha256"]) == 64 and r.extra["config"]["mining"]["features"] == "hog+xfeat"
+    assert r.extra["live_detect_seconds_per_image"] > 0 and r.extra["mean_mining_seconds"] > 0
+
+
 @pytest.mark.heavy
 def test_stromovka_error_rate_target(grief_root):
     ds = _stromovka(grief_root)

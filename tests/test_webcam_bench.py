@@ -96,3 +96,25 @@ def test_cli_names_a_missing_folder(tmp_path, capsys):
     assert main(["bench", "webcam", str(tmp_path / "nope"), "--json", str(tmp_path / "o.json")]) == 2
     assert "nope: not a folder" in capsys.readouterr().err
     assert not (tmp_path / "o.json").exists()
+
+
+def test_learned_cell_signatures_are_a_method_of_their_own(tmp_path, xfeat_model, monkeypatch):
+    """``signatures-hog+xfeat`` mines the same banks on stacked cells, reported beside ``signatures``."""
+    monkeypatch.setenv("SCENESIG_XFEAT_MODEL", str(xfeat_model))
+    root = tmp_path / "cams"
+    names = ["20200101_120000.jpg", "20200101_230000.jpg", "20200102_120000.jpg"]
+    _write_scene(root / "a", names, 1, night={"20200101_230000.jpg"})
+    _write_scene(root / "b", names, 2)
+    out = tmp_path / "res.json"
+    conf = tmp_path / "conf.json"
+    conf.write_text(json.dumps({"signatures": {"mining": {"shapes": {"kinds": [
+        {"name": "square-m", "size": 0.25, "aspect": 1.0, "nx": 7, "ny": 4}]}}}}))
+    rc = webcam.main([str(root), "--train", "single", "--json", str(out), "--methods",
+                      "signatures,signatures-hog+xfeat", "--config", str(conf)])
+    assert rc == 0
+    s = json.loads(out.read_text())
+    hog, both = s["methods"]["signatures"], s["methods"]["signatures-hog+xfeat"]
+    assert hog["features"] == "hog" and "model_sha256" not in hog
+    assert both["features"] == "hog+xfeat" and len(both["model_sha256"]) == 64
+    assert both["config"]["mining"]["features"] == "hog+xfeat"
+    assert both["localisable_fraction"] == 1.0 and both["seconds_per_test_image"] > 0
