@@ -368,7 +368,7 @@ def run_benchmark(root, methods=("signatures", "orb", "sift"), train: str = "mul
             summary["methods"][m]["mining_seconds_per_scene"] = float(np.mean(
                 [b["seconds"] for b in mining_stats[m].values()])) if mining_stats[m] else 0.0
             features = sorted({b["features"] for b in mining_stats[m].values()})
-            summary["methods"][m]["features"] = "+".join(features) if features else None
+            summary["methods"][m]["features"] = ",".join(features) if features else None
             if any("xfeat" in f for f in features):
                 from scenesig.signatures.xfeat import get_xfeat
                 summary["methods"][m]["model_sha256"] = get_xfeat().sha256

@@ -81,7 +81,8 @@ def _write_summary(out: Path, places, allstats: dict, seconds: float, corrupt_fi
         "places": len(places),
         "signatures_per_place_mean": float(np.mean([st["signatures"] for st in allstats.values()])) if allstats else 0.0,
         # the cell descriptor the banks were mined on (mining's ``features``: hog, xfeat, hog+xfeat)
-        "features": "+".join(sorted({st.get("features", "hog") for st in allstats.values()})) or "hog",
+        # (a map whose places differ -- not made by build-map -- lists each, comma-separated)
+        "features": ",".join(sorted({st.get("features", "hog") for st in allstats.values()})) or "hog",
         "bytes_per_place_mean": float(np.mean(sizes)) if sizes else 0.0,
         # where the bytes go: the scene-signature bank and its landmarks, the point-feature baseline's
         # keyframe features, the keyframe image for figures, and the metadata
