@@ -15,7 +15,6 @@ per-fold choices and the leave-one-place-out total beside the default's.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -23,7 +22,7 @@ import numpy as np
 
 from scenesig.signatures import heading
 from scenesig.surveys.grief import load
-from scenesig.surveys.io import atomic_write_text
+from scenesig.benchmarks._stages import emit_json
 
 CANDIDATES = (1.5, 3.0, 6.0, 12.0, 24.0, 1e6)      # 1e6: no spread weighting
 
@@ -94,11 +93,9 @@ def run(dataset, json_path=None, jobs: int = 1, records=None, live=None, reduced
     out["revote_reproduces_estimates"] = float(np.mean(same))     # 1.0: the re-vote is the bench's vote
     out["lopo_errors"] = lopo
     out["default_errors"] = int(wrong[default].sum())
-    print(json.dumps(out, indent=1))
     if json_path:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(Path(json_path), json.dumps(out, indent=1))   # never half a file
+    emit_json(out, json_path)
     return out
 
 

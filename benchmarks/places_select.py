@@ -98,7 +98,6 @@ def run(dataset, json_path=None, jobs: int = 1, progress: bool = True, cache=Non
         from pathlib import Path
 
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(Path(json_path), json.dumps(out, indent=1))   # never half a file
     print(json.dumps({k: out[k] for k in ("descriptor_chosen", "chosen")}, indent=1))
     return out

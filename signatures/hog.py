@@ -361,23 +361,27 @@ def fhog(image: np.ndarray, cell: int = 8, clip: float = 0.2, color: bool = Fals
     return out
 
 
-def feature_dim(config: dict | None = None) -> int:
-    """Length of a cell's descriptor under ``config`` (HOG parameters): 31, 64 or 95."""
-    kind = _feature_kind(config)
-    return (FEATURE_DIM if "hog" in kind.split("+") else 0) + (XFEAT_DIM if "xfeat" in kind.split("+") else 0)
+#: Length of each part a cell descriptor can stack.
+_PART_DIM = {"hog": FEATURE_DIM, "xfeat": XFEAT_DIM}
 
 
-def _feature_kind(config: dict | None) -> str:
+def _parts(config: dict | None) -> list[str]:
+    """The stacked parts of ``config``'s cell descriptor, in order (``["hog", "xfeat"]`` for hog+xfeat)."""
     kind = str((config or {}).get("features", "hog"))
     if kind not in FEATURE_KINDS:
         raise ValueError(f"unknown cell features {kind!r}: expected one of {', '.join(FEATURE_KINDS)}")
-    return kind
+    return kind.split("+")
+
+
+def feature_dim(config: dict | None = None) -> int:
+    """Length of a cell's descriptor under ``config`` (HOG parameters): 31, 64 or 95."""
+    return sum(_PART_DIM[p] for p in _parts(config))
 
 
 def learned(config: dict | None) -> bool:
     """True when cells are (partly) described by a network, whose descriptor of a cell depends on
     the whole image: such levels are always described whole (no regions)."""
-    return "xfeat" in _feature_kind(config)
+    return "xfeat" in _parts(config)
 
 
 def describe_cells(level: np.ndarray, cfg: dict) -> np.ndarray:
@@ -391,16 +395,16 @@ def describe_cells(level: np.ndarray, cfg: dict) -> np.ndarray:
     "hog+xfeat" stacks both, FHOG first (so its texture columns stay 27-30), the XFeat part scaled to
     length ``xfeat_weight``.
     """
-    kind = _feature_kind(cfg)
+    names = _parts(cfg)
     cell = int(cfg["cell"])
     parts = []
-    if "hog" in kind.split("+"):
+    if "hog" in names:
         parts.append(fhog(level, cell, float(cfg["clip"]), bool(cfg["color"])))
-    if "xfeat" in kind.split("+"):
+    if "xfeat" in names:
         from scenesig.signatures.xfeat import get_xfeat
 
         x = get_xfeat().cells(level, cell)
-        if kind != "xfeat":
+        if len(names) > 1:
             x *= np.float32(cfg.get("xfeat_weight", 1.0))
         parts.append(x)
     return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=2)

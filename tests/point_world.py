@@ -74,3 +74,17 @@ def vehicle_pose(x, y=0.0, yaw=0.0):
 
 def camera_pose(T_world_vehicle):
     return T_world_vehicle @ T_VC
+
+
+def frame_prior(T_world_place):
+    """The point-method tests' detector frame: vehicle pose (3.0, 0.8, 2 deg) in the place, and a motion prior
+    0.5 m and about a degree off it.  Returns ``(T_place_vehicle, T_world_vehicle, prior)``."""
+    from scenesig.localiser.pipeline import MotionPrior
+    from scenesig.localiser.solver import pose_exp
+
+    T_pv = vehicle_pose(3.0, 0.8, np.radians(2.0))
+    T_true = T_world_place @ T_pv
+    P = np.diag([0.01, 0.01, 0.03, 1.0, 1.0, 0.3]) ** 2
+    prior = MotionPrior(0.0, T_true @ pose_exp([0.005, -0.005, 0.02, 0.5, -0.4, 0.1]), P, 0, T_world_place, 1,
+                        False, 0.0)
+    return T_pv, T_true, prior

@@ -11,7 +11,7 @@ from scenesig.mapping.store import MapStore, MapWriter, PlaceData, decode_place,
 from scenesig.signatures.pointfeatures import PointFeatures
 from scenesig.surveys.geometry import invert, make_pose, rot_z
 
-from point_world import CAMERA, T_VC, camera_pose, planes, render, vehicle_pose
+from point_world import CAMERA, T_VC, camera_pose, frame_prior, planes, render, vehicle_pose
 
 BASELINES = (-5.0, -2.5, 2.5, 5.0)
 
@@ -236,13 +236,10 @@ def point_store(tmp_path_factory, keyframe_map):
 @pytest.mark.parametrize("kind", ["orb", "sift"])
 def test_point_method_localises_a_synthetic_frame(point_store, world, kind):
     store, T_wp0 = point_store
-    T_pv = vehicle_pose(3.0, 0.8, np.radians(2.0))
+    T_pv, T_true, prior = frame_prior(T_wp0)
     live, _ = render(camera_pose(T_pv), world)
     method = make_method(kind, store, CAMERA, T_VC)
     assert isinstance(method, PointLocaliser) and method.name == kind
-    P = np.diag([0.01, 0.01, 0.03, 1.0, 1.0, 0.3]) ** 2
-    T_true = T_wp0 @ T_pv
-    prior = MotionPrior(0.0, T_true @ pose_exp([0.005, -0.005, 0.02, 0.5, -0.4, 0.1]), P, 0, T_wp0, 1, False, 0.0)
     m = method.solve(method.detect(live, 0, prior), 0, prior)
     assert m.constraint is not None, m.reason
     assert m.detections >= 30 and m.inliers >= 0.8 * m.detections

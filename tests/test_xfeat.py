@@ -179,22 +179,18 @@ def _xfeat_store(tmp_path, model):
 
 
 def test_xfeat_method_localises_a_synthetic_frame(tmp_path, xfeat_model):
-    from scenesig.localiser.pipeline import MotionPrior, make_method
-    from scenesig.localiser.solver import pose_exp
+    from scenesig.localiser.pipeline import make_method
     from scenesig.surveys.geometry import invert
 
-    from point_world import CAMERA, T_VC, camera_pose, render, vehicle_pose
+    from point_world import CAMERA, T_VC, camera_pose, frame_prior, render
 
     store, T_wp0, world = _xfeat_store(tmp_path, xfeat_model)
     method = make_method("xfeat", store, CAMERA, T_VC, {"features": {"xfeat": {"model": str(xfeat_model)}}})
     cfg = method.method_config()
     assert cfg["method"] == "xfeat" and cfg["model_sha256"] == xfeat.model_sha256(xfeat_model)
     assert cfg["match"] == "mnn" and cfg["n_features"] == 4096
-    T_pv = vehicle_pose(3.0, 0.8, np.radians(2.0))
+    T_pv, T_true, prior = frame_prior(T_wp0)
     live, _ = render(camera_pose(T_pv), world)
-    P = np.diag([0.01, 0.01, 0.03, 1.0, 1.0, 0.3]) ** 2
-    T_true = T_wp0 @ T_pv
-    prior = MotionPrior(0.0, T_true @ pose_exp([0.005, -0.005, 0.02, 0.5, -0.4, 0.1]), P, 0, T_wp0, 1, False, 0.0)
     m = method.solve(method.detect(live, 0, prior), 0, prior)
     assert m.constraint is not None, m.reason
     assert m.detections >= 30 and m.inliers >= 0.7 * m.detections
