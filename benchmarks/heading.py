@@ -290,6 +290,11 @@ def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 
     if features is not None:
         config = dict(config or {})
         config["mining"] = {**dict(config.get("mining") or {}), "features": features}
+    from scenesig.signatures.mining import resolve_config
+    features = resolve_config((config or {}).get("mining"))["features"]
+    if "xfeat" in features:
+        from scenesig.benchmarks._models import xfeat_model_for_cells
+        xfeat_model_for_cells()
     t0 = time.perf_counter()
     detail, extra = {}, {}
     est = SignatureHeading(dataset, config, n_jobs=n_jobs, progress=progress, single=single)
@@ -311,9 +316,8 @@ def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 
         if n_map:
             extra["map_detect_seconds_per_image"] = sum(s.get("map_detect_seconds", 0.0) for s in stats) / n_map
     cfg = est.config
-    from scenesig.signatures.mining import resolve_config
-    extra["features"] = resolve_config(cfg["mining"])["features"]
-    if "xfeat" in extra["features"]:
+    extra["features"] = features
+    if "xfeat" in features:
         from scenesig.signatures.xfeat import get_xfeat
         extra["model_sha256"] = get_xfeat().sha256
     # the full resolved settings (the same for every folder) and what the training-data rule made of

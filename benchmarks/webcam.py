@@ -55,6 +55,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+# the scene-signature variants and the cell descriptor each mines on, as in the heading benchmark
+from scenesig.benchmarks.heading import SIGNATURE_METHODS
+
 #: Benchmark settings.  Everything a method uses is here, so the JSON can state it.
 default_config = {
     "tolerance_px": 15.0,          # McManus et al. 2015 §4.2: δ = 15 px
@@ -82,9 +85,6 @@ DEFAULT_EXCLUDE = ("courbevoie/20131029_085701", "courbevoie/20140409_082712")
 
 PERIODS = ("night", "twilight", "day")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
-#: Scene-signature variants and the cell descriptor each mines on (None: the settings' ``mining.features``,
-#: HOG by default; signatures.hog.describe_cells)
-SIGNATURE_METHODS = {"signatures": None, "signatures-xfeat": "xfeat", "signatures-hog+xfeat": "hog+xfeat"}
 METHODS = tuple(SIGNATURE_METHODS) + ("orb", "sift", "xfeat")
 
 
@@ -290,6 +290,9 @@ def run_benchmark(root, methods=("signatures", "orb", "sift"), train: str = "mul
         if m not in METHODS:
             raise ValueError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
     scenes = load_scenes(root, train, exclude)
+    if any(m in SIGNATURE_METHODS and "xfeat" in _signature_features(cfg, m) for m in methods):
+        from scenesig.benchmarks._models import xfeat_model_for_cells
+        xfeat_model_for_cells()
     xfeat_info = None
     if "xfeat" in methods:
         from scenesig.benchmarks._models import xfeat_model
@@ -391,6 +394,11 @@ def _with_features(cfg: dict, features: str | None) -> dict:
     sig = dict(cfg["signatures"])
     sig["mining"] = {**dict(sig.get("mining") or {}), "features": features}
     return {**cfg, "signatures": sig}
+
+
+def _signature_features(cfg: dict, method: str) -> str:
+    """The cell descriptor a signature ``method`` mines on under ``cfg`` (mining's ``features``)."""
+    return (_with_features(cfg, SIGNATURE_METHODS[method])["signatures"]["mining"] or {}).get("features", "hog")
 
 
 def _merged(base: dict, over: dict) -> dict:

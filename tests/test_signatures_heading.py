@@ -58,10 +58,13 @@ def test_leave_one_session_out_bank_on_stromovka(grief_root):
 
 def test_bench_variant_on_learned_cells_estimates_stromovka_and_reports_its_cost(grief_root, xfeat_model,
                                                                                  monkeypatch):
-    """``signatures-hog+xfeat`` through the benchmark's method runner: one leave-one-session-out bank."""
+    """``signatures-hog+xfeat`` through the benchmark's method runner: one leave-one-session-out bank, its
+    network found where the benchmarks find models (../shared/models) with ``$SCENESIG_XFEAT_MODEL`` unset."""
     from scenesig.benchmarks.heading import SIGNATURE_METHODS, run_signatures
+    from scenesig.signatures.xfeat import model_sha256
 
-    monkeypatch.setenv("SCENESIG_XFEAT_MODEL", str(xfeat_model))
+    monkeypatch.setenv("SCENESIG_XFEAT_MODEL", "")        # restored after the test, whatever the run sets
+    monkeypatch.delenv("SCENESIG_XFEAT_MODEL")
     ds = _stromovka(grief_root)
     pairs = [p for p in ds.pairs() if p.place == 0 and p.live == 3]
     r = run_signatures(ds, pairs, progress=False, features=SIGNATURE_METHODS["signatures-hog+xfeat"],
@@ -69,7 +72,7 @@ def test_bench_variant_on_learned_cells_estimates_stromovka_and_reports_its_cost
     truth = np.array([ds.truth(p) for p in pairs])
     assert np.sum(np.abs(r.estimates - truth) < 20) >= len(pairs) - 1, r.estimates - truth
     assert r.name == "signatures-hog+xfeat" and r.extra["features"] == "hog+xfeat"
-    assert len(r.extra["model_sha256"]) == 64 and r.extra["config"]["mining"]["features"] == "hog+xfeat"
+    assert r.extra["model_sha256"] == model_sha256(xfeat_model) and r.extra["config"]["mining"]["features"] == "hog+xfeat"
     assert r.extra["live_detect_seconds_per_image"] > 0 and r.extra["mean_mining_seconds"] > 0
 
 
