@@ -9,6 +9,18 @@ SHARED_DATA = ROOT.parent / "shared" / "data"
 SHARED_MODELS = ROOT.parent / "shared" / "models"
 
 
+@pytest.fixture(autouse=True)
+def _library_thread_section():
+    """An in-process command-line call (``main([...])``) installs the runtime layer's process-wide OpenCV
+    tuning around the library's threads (:func:`scenesig.runtime.configure`); later tests of the library
+    itself must see the library's own default again, whatever order they run in."""
+    from scenesig.signatures import hog
+
+    before = hog._PARALLEL_SECTION
+    yield
+    hog.set_parallel_section(before)
+
+
 @pytest.fixture
 def grief_root():
     """``../shared/data/grief``; skips with a message where the real data is absent."""
