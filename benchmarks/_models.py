@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["SHARED_MODELS", "xfeat_model", "xfeat_model_for_cells"]
+__all__ = ["SHARED_MODELS", "xfeat_model"]
 
 SHARED_MODELS = Path(__file__).resolve().parents[2] / "shared" / "models"
 
@@ -25,16 +25,3 @@ def xfeat_model() -> str:
     shared = SHARED_MODELS / "xfeat" / "xfeat.onnx"
     return str(shared if shared.is_file() else model_path())
 
-
-def xfeat_model_for_cells() -> str:
-    """:func:`xfeat_model`, made the process's ``$SCENESIG_XFEAT_MODEL`` when that is unset.
-
-    Signature banks on XFeat cells (mining's ``features``) find the network the library's way -- the
-    environment variable, else the user path -- because a bank must not store a machine's path; the
-    benchmark's own choice reaches them, and the worker processes they are mined in, through the
-    environment."""
-    from scenesig.signatures.xfeat import ENV_VAR
-
-    path = xfeat_model()
-    os.environ.setdefault(ENV_VAR, path)
-    return path

@@ -292,9 +292,9 @@ def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 
         config["mining"] = {**dict(config.get("mining") or {}), "features": features}
     from scenesig.signatures.mining import resolve_config
     features = resolve_config((config or {}).get("mining"))["features"]
-    if "xfeat" in features:
-        from scenesig.benchmarks._models import xfeat_model_for_cells
-        xfeat_model_for_cells()
+    if "xfeat" in features and not (config or {}).get("xfeat_model"):
+        from scenesig.benchmarks._models import xfeat_model
+        config = {**(config or {}), "xfeat_model": xfeat_model()}   # to the processes that mine
     t0 = time.perf_counter()
     detail, extra = {}, {}
     est = SignatureHeading(dataset, config, n_jobs=n_jobs, progress=progress, single=single)
@@ -318,8 +318,8 @@ def run_signatures(dataset: GriefDataset, pairs: list[GriefPair], n_jobs: int = 
     cfg = est.config
     extra["features"] = features
     if "xfeat" in features:
-        from scenesig.signatures.xfeat import get_xfeat
-        extra["model_sha256"] = get_xfeat().sha256
+        from scenesig.signatures.xfeat import model_path, model_sha256
+        extra["model_sha256"] = model_sha256(cfg["xfeat_model"] or model_path())
     # the full resolved settings (the same for every folder) and what the training-data rule made of
     # them per bank
     extra["config"] = dict(cfg)

@@ -283,16 +283,25 @@ class ImageResult:
 def run_benchmark(root, methods=("signatures", "orb", "sift"), train: str = "multi", config: dict | None = None,
                   exclude=DEFAULT_EXCLUDE, n_jobs: int = 1, progress: bool = True):
     """Run the protocol; returns (summary dict, {method: [ImageResult]}, scenes)."""
-    from tqdm import tqdm
-
     cfg = _merged(default_config, config or {})
     for m in methods:
         if m not in METHODS:
             raise ValueError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
     scenes = load_scenes(root, train, exclude)
+    cell_model = None
     if any(m in SIGNATURE_METHODS and "xfeat" in _signature_features(cfg, m) for m in methods):
-        from scenesig.benchmarks._models import xfeat_model_for_cells
-        xfeat_model_for_cells()
+        from scenesig.benchmarks._models import xfeat_model
+        cell_model = xfeat_model()      # banks on learned cells look the model up the library's way
+    from scenesig.signatures.xfeat import using_model
+
+    with using_model(cell_model):
+        return _run(cfg, methods, scenes, root, train, exclude, n_jobs, progress)
+
+
+def _run(cfg, methods, scenes, root, train, exclude, n_jobs, progress):
+    """:func:`run_benchmark`'s protocol on loaded scenes with resolved settings."""
+    from tqdm import tqdm
+
     xfeat_info = None
     if "xfeat" in methods:
         from scenesig.benchmarks._models import xfeat_model

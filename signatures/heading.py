@@ -89,6 +89,10 @@ default_config = {
     "single_experience": {},        # overrides of signatures.experience.default_config: what a bank
                                     # from one real appearance is mined and detected with
     "seed": 0,
+    # XFeat model file for banks on learned cells (mining's ``features``); None: the library's lookup
+    # ($SCENESIG_XFEAT_MODEL, else the user path).  A benchmark names its model here, so it reaches the
+    # worker processes that mine (signatures.xfeat reads the model's place from the environment).
+    "xfeat_model": None,
 }
 
 # ---------------------------------------------------------------------------------- voting
@@ -315,6 +319,13 @@ def train_bank(ds, place_index: int, train: list, live: int, cfg: dict):
 
 def _run_group(ds, g: _Group, cfg: dict):
     """Mine one bank and estimate all pairs that use it."""
+    from scenesig.signatures.xfeat import using_model
+
+    with using_model(cfg["xfeat_model"]):
+        return _estimate_group(ds, g, cfg)
+
+
+def _estimate_group(ds, g: _Group, cfg: dict):
     scale = float(cfg["scale"])
     place = ds.places[g.place]
     bank, images, map_offset, st = train_bank(ds, g.place, g.train, g.live, cfg)

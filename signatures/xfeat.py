@@ -30,6 +30,7 @@ under ``$XDG_DATA_HOME`` when set).  ``onnxruntime`` is the optional extra ``sce
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import threading
@@ -41,7 +42,7 @@ from scipy import ndimage
 from scenesig.surveys.errors import DataError
 from scenesig.surveys.settings import merge_settings
 
-__all__ = ["default_config", "ENV_VAR", "DEFAULT_MODEL_PATH", "INPUT_SIZE", "ModelNotFoundError", "model_path",
+__all__ = ["default_config", "ENV_VAR", "DEFAULT_MODEL_PATH", "INPUT_SIZE", "ModelNotFoundError", "model_path", "using_model",
            "model_sha256", "XFeat", "DenseMaps", "heatmap_from_logits", "nms", "sample_dense", "postprocess",
            "match_mnn", "get_xfeat"]
 
@@ -105,6 +106,26 @@ def model_path(setting=None) -> Path:
                                        f"weights/xfeat.onnx from github.com/verlab/accelerated_features "
                                        f"(Apache-2.0) and put it there, or set ${ENV_VAR} to its path")
     return path
+
+
+@contextlib.contextmanager
+def using_model(path=None):
+    """Within: :func:`model_path`'s environment lookup finds ``path`` (``$SCENESIG_XFEAT_MODEL``, restored
+    on exit; None: nothing changes).  For callers that must name the model for code that takes no setting
+    -- learned cells (:func:`scenesig.signatures.hog.describe_cells`) look the model up the library's way,
+    since a bank must not store a machine's path."""
+    if not path:
+        yield
+        return
+    before = os.environ.get(ENV_VAR)
+    os.environ[ENV_VAR] = str(path)
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(ENV_VAR, None)
+        else:
+            os.environ[ENV_VAR] = before
 
 
 _SHA: dict = {}

@@ -1,5 +1,7 @@
 """XFeat post-processing (signatures.xfeat) on synthetic maps with known answers, its matcher, the model
 location rules, and -- with ../shared/models -- the network recovering a horizontal shift."""
+import os
+
 import numpy as np
 import pytest
 
@@ -209,3 +211,19 @@ def test_xfeat_method_without_model_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setenv(xfeat.ENV_VAR, str(tmp_path / "nowhere" / "xfeat.onnx"))
     with pytest.raises(xfeat.ModelNotFoundError, match="nowhere/xfeat.onnx"):
         make_method("xfeat", MapStore.open(tmp_path / "m"), CAMERA, T_VC)
+
+
+def test_using_model_names_the_model_for_the_lookup_and_restores_the_environment(tmp_path, monkeypatch):
+    model = tmp_path / "m.onnx"
+    model.write_bytes(b"x")
+    monkeypatch.setenv(xfeat.ENV_VAR, "")
+    monkeypatch.delenv(xfeat.ENV_VAR)
+    with xfeat.using_model(model):
+        assert xfeat.model_path() == model
+    assert xfeat.ENV_VAR not in os.environ
+    monkeypatch.setenv(xfeat.ENV_VAR, str(tmp_path / "users.onnx"))
+    with xfeat.using_model(model):
+        assert xfeat.model_path() == model
+    assert os.environ[xfeat.ENV_VAR] == str(tmp_path / "users.onnx")
+    with xfeat.using_model(None):                    # nothing named: the lookup as it was
+        assert os.environ[xfeat.ENV_VAR] == str(tmp_path / "users.onnx")
