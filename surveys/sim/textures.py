@@ -155,8 +155,37 @@ def wall_material(rng: np.random.Generator, h: int, w: int, kind: str, ppm: floa
 
 
 # ----------------------------------------------------------------------------------- details
+def _clamp_rect(rect, shape) -> tuple:
+    """``rect`` (x0, y0, x1, y1) with every coordinate clamped into an image of ``shape``.
+
+    A rectangle inside the image is returned unchanged (so are degenerate ones inside it): the
+    night renderer draws one random number per listed window, so windows are clamped, never dropped.
+    """
+    h, w = shape[:2]
+    x0, y0, x1, y1 = (int(v) for v in rect)
+    return (min(max(x0, 0), w), min(max(y0, 0), h), min(max(x1, 0), w), min(max(y1, 0), h))
+
+
+def _paste(img: np.ndarray, patch: np.ndarray, x0: int, y0: int) -> None:
+    """Write ``patch`` into ``img`` with its top-left corner at (x0, y0), clipped to ``img``.
+
+    Destination and source are cut by the same rectangle, so a patch that overhangs an edge (a
+    window wider than a narrow side wall) keeps its inside part; plain slicing would instead
+    shorten only the destination (and wrap negative starts to the far edge).
+    """
+    cx0, cy0, cx1, cy1 = _clamp_rect((x0, y0, x0 + patch.shape[1], y0 + patch.shape[0]), img.shape)
+    if cx1 > cx0 and cy1 > cy0:
+        img[cy0:cy1, cx0:cx1] = patch[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
+
+
 def _window(img, rng, x0, y0, x1, y1, frame_c, style, ppm, season):
-    """Draw one window (frame, glass with a sky reflection, interior hints, sill)."""
+    """Draw one window (frame, glass with a sky reflection, interior hints, sill).
+
+    The rectangle may overhang the texture (a window bay wider than a narrow wall): the glass is
+    drawn in the window's own coordinates and pasted clipped, and every random draw is made
+    whatever the overlap, so the random stream -- and hence the rest of the facade -- does not
+    depend on it.
+    """
     h = y1 - y0
     w = x1 - x0
     if w < 3 or h < 3:
@@ -185,7 +214,7 @@ def _window(img, rng, x0, y0, x1, y1, frame_c, style, ppm, season):
         glass[:bh:3] *= 0.8
     elif inner < 0.6:  # something on the sill inside
         cv2.circle(glass, (w // 2, h - 2), max(2, w // 6), (40, 110, 60), -1)
-    img[y0:y1, x0:x1] = glass
+    _paste(img, glass, x0, y0)
     t = max(1, int(0.06 * ppm))
     cv2.rectangle(img, (x0, y0), (x1 - 1, y1 - 1), frame_c, t)
     # glazing bars
@@ -206,7 +235,8 @@ def _window(img, rng, x0, y0, x1, y1, frame_c, style, ppm, season):
         cv2.rectangle(img, (x0 + t, y1 - sill_h), (x1 - t, y1), (235, 238, 242), -1)
     else:
         # rain streak below the sill (weathering)
-        img[y1 + sill_h:y1 + sill_h + streak_h, x0:x1] *= 0.92
+        vx0, _, vx1, _ = _clamp_rect((x0, 0, x1, 0), img.shape)
+        img[y1 + sill_h:y1 + sill_h + streak_h, vx0:vx1] *= 0.92
 
 
 def _door(img, rng, x0, y1, ppm, colour=None, width_m=1.0, height_m=2.1, glass=False):
@@ -321,7 +351,7 @@ def facade(rng: np.random.Generator, width_m: float, height_m: float, style: str
             _window(img, rng, x0, y0, x1, y1, frame_c, style, ppm, season)
             pane = int(rng.uniform(1.2, 1.8) * ppm)
             for xs in range(x0, x1, pane):
-                windows.append((xs, y0, min(xs + pane, x1), y1))
+                windows.append(_clamp_rect((xs, y0, min(xs + pane, x1), y1), img.shape))
     else:
         win_w = rng.uniform(0.9, 1.6) if style not in ("industrial",) else rng.uniform(1.5, 3.0)
         win_h = rng.uniform(1.2, 1.7)
@@ -351,7 +381,7 @@ def facade(rng: np.random.Generator, width_m: float, height_m: float, style: str
                     _door(img, rng, cx - int(0.5 * ppm), h - 1, ppm)
                     continue
                 _window(img, rng, x0, y0, x1, y1, frame_c, style, ppm, season)
-                windows.append((x0, y0, x1, y1))
+                windows.append(_clamp_rect((x0, y0, x1, y1), img.shape))
         if style == "terrace" and not side:
             # party-wall lines and a second door: terraces repeat, but each house its own colour
             for xs in np.linspace(0, w, int(rng.integers(2, 4)) + 1)[1:-1]:
@@ -369,7 +399,7 @@ def facade(rng: np.random.Generator, width_m: float, height_m: float, style: str
             _door(img, rng, x + sw - dw - 4, h - 1, ppm, glass=True, height_m=2.3)
             win = (x + 4, fascia_y1 + 4, x + sw - dw - 10, h - int(0.5 * ppm))
             _window(img, rng, *win, frame_c, "office_glass", ppm, season)
-            windows.append(win)
+            windows.append(_clamp_rect(win, img.shape))
             if rng.random() < 0.4:  # awning
                 pts = np.array([[x, fascia_y1], [x + sw, fascia_y1], [x + sw, fascia_y1 + int(0.6 * ppm)],
                                 [x, fascia_y1 + int(0.6 * ppm)]], np.int32)
