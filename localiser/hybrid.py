@@ -62,8 +62,8 @@ from .signature_method import SignatureLocaliser
 from .solver import SolveResult, _Problem, _solve, pose_log, solve, solve_pnp_prior
 from .solver import default_config as solver_default
 
-__all__ = ["default_config", "HybridObservation", "HybridLocaliser", "HybridResult", "fuse", "solve_hybrid",
-           "HYBRID_METHODS", "signature_agreement"]
+__all__ = ["default_config", "resolve_config", "HybridObservation", "HybridLocaliser", "HybridResult", "fuse",
+           "solve_hybrid", "HYBRID_METHODS", "signature_agreement"]
 
 #: method name -> (point-feature kind, point map)
 HYBRID_METHODS = {"hybrid": ("sift", "reference"), "hybrid-orb": ("orb", "reference"),
@@ -85,11 +85,20 @@ default_config = {
     # only the joint solve's own prior check after refinement, as the point method does)
     "consensus_prior_gate": True,
     "solver": {},                # overrides of localiser.solver.default_config for the joint solve
+    # True / False: both parts' prior gating (what the paper preset and --no-prior-gating set for every
+    # method); None: each part's own setting
+    "prior_gating": None,
 }
 
 
 def _merge(config: dict | None) -> dict:
     return merge_settings(default_config, config, "hybrid method", open=("signatures", "points", "solver"))
+
+
+def _parts(cfg: dict, point_map: str) -> tuple[dict, dict]:
+    """The signature part's and the point part's overrides (``prior_gating`` given to both)."""
+    gate = {} if cfg["prior_gating"] is None else {"prior_gating": bool(cfg["prior_gating"])}
+    return {**cfg["signatures"], **gate}, {**cfg["points"], **gate, "point_map": point_map}
 
 
 @dataclass
@@ -310,8 +319,9 @@ class HybridLocaliser(WeakLocaliser):
         self.store = store
         self.camera = camera
         self.T_vehicle_camera = np.asarray(T_vehicle_camera, dtype=float)
-        self.signatures = SignatureLocaliser(store, camera, T_vehicle_camera, cfg["signatures"] or None)
-        self.points = PointLocaliser(store, camera, T_vehicle_camera, {**cfg["points"], "point_map": point_map},
+        sig_cfg, pt_cfg = _parts(cfg, point_map)
+        self.signatures = SignatureLocaliser(store, camera, T_vehicle_camera, sig_cfg or None)
+        self.points = PointLocaliser(store, camera, T_vehicle_camera, pt_cfg,
                                      kind=kind)
         self.kind, self.point_map = kind, point_map
         self.name = next(k for k, v in HYBRID_METHODS.items() if v == (kind, point_map))
@@ -377,5 +387,24 @@ def _factory(kind, point_map):
     return make
 
 
+def resolve_config(config: dict | None = None, kind: str = "sift", point_map: str = "reference") -> dict:
+    """Every setting of a hybrid method: ``config`` (overrides of :data:`default_config`) with its
+    signature part's, point part's (``kind`` on the ``point_map``) and joint solver's resolved as
+    :class:`HybridLocaliser` uses them."""
+    from .pointmethod import resolve_config as point_config
+    from .signature_method import resolve_config as signature_config
+
+    cfg = _merge(config)
+    sig_cfg, pt_cfg = _parts(cfg, point_map)
+    return {**cfg, "signatures": signature_config(sig_cfg or None), "points": point_config(pt_cfg),
+            "solver": merge_settings(solver_default, {"min_inlier_fraction": 0.0, **cfg["solver"]}, "solver")}
+
+
+def _settings(kind, point_map):
+    def settings(config=None):
+        return resolve_config(config, kind, point_map)
+    return settings
+
+
 for _name, (_kind, _pm) in HYBRID_METHODS.items():
-    register_method(_name, _factory(_kind, _pm))
+    register_method(_name, _factory(_kind, _pm), _settings(_kind, _pm))

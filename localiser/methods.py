@@ -24,7 +24,8 @@ from scenesig.surveys.geometry import Camera, invert
 
 from .solver import LocalisationConstraint
 
-__all__ = ["MotionPrior", "Measurement", "WeakLocaliser", "register_method", "make_method", "available_methods"]
+__all__ = ["MotionPrior", "Measurement", "WeakLocaliser", "register_method", "make_method", "available_methods",
+           "method_settings"]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -153,21 +154,46 @@ _LAZY.update({name: "scenesig.localiser.pointmethod" for name in ("orb", "sift",
 _LAZY.update({name: "scenesig.localiser.hybrid" for name in ("hybrid", "hybrid-orb", "hybrid-sift-all", "hybrid-orb-all")})
 
 
-def register_method(name: str, factory: Callable) -> None:
-    """Make ``factory(store, camera, T_vehicle_camera, config) -> WeakLocaliser`` available as ``name``."""
+_SETTINGS: dict[str, Callable] = {}
+
+
+def register_method(name: str, factory: Callable, settings: Callable | None = None) -> None:
+    """Make ``factory(store, camera, T_vehicle_camera, config) -> WeakLocaliser`` available as ``name``.
+
+    ``settings(config) -> dict`` resolves the method's every setting from ``config`` (its overrides),
+    raising ``ValueError`` on a key the method does not have: what ``scenesig config show`` and
+    ``metrics.json`` report.  Without it the method's settings are reported as given.
+    """
     _METHODS[name] = factory
+    if settings is None:
+        _SETTINGS.pop(name, None)
+    else:
+        _SETTINGS[name] = settings
 
 
 def available_methods() -> list[str]:
     return sorted(set(_METHODS) | set(_LAZY))
 
 
-def make_method(name: str, store: MapStore, camera: Camera, T_vehicle_camera, config: dict | None = None) -> WeakLocaliser:
-    """Instantiate a registered method (``signatures``, ``orb``, ``sift``, ...)."""
+def _load(name: str) -> None:
     if name not in _METHODS and name in _LAZY:
         import importlib
 
         importlib.import_module(_LAZY[name])
+
+
+def make_method(name: str, store: MapStore, camera: Camera, T_vehicle_camera, config: dict | None = None) -> WeakLocaliser:
+    """Instantiate a registered method (``signatures``, ``orb``, ``sift``, ...)."""
+    _load(name)
     if name not in _METHODS:
         raise ValueError(f"unknown method {name!r}; available: {available_methods()}")
     return _METHODS[name](store, camera, T_vehicle_camera, config)
+
+
+def method_settings(name: str, config: dict | None = None) -> dict:
+    """The resolved settings of method ``name`` (its registered ``settings`` resolver applied to
+    ``config``); a method registered without one, or a name not registered (a localiser object
+    passed to the replay directly), gets its overrides back as given."""
+    _load(name)
+    resolve = _SETTINGS.get(name)
+    return resolve(config) if resolve is not None else dict(config or {})

@@ -432,9 +432,13 @@ class PointLocaliser(WeakLocaliser):
         self._cache.clear()
 
 
-def _factory(kind, point_map):
+def _base(kind: str, point_map: str) -> dict:
     # XFeat is matched as its authors match it (mutual NN on cosine similarity) unless told otherwise
-    base = {"point_map": point_map, **({"match": "mnn"} if kind == "xfeat" else {})}
+    return {"point_map": point_map, **({"match": "mnn"} if kind == "xfeat" else {})}
+
+
+def _factory(kind, point_map):
+    base = _base(kind, point_map)
 
     def make(store, camera, T_vehicle_camera, config=None):
         return PointLocaliser(store, camera, T_vehicle_camera, {**base, **(config or {})}, kind=kind)
@@ -442,6 +446,14 @@ def _factory(kind, point_map):
     return make
 
 
+def _settings(kind, point_map):
+    base = _base(kind, point_map)
+
+    def settings(config=None):
+        return resolve_config({**base, **(config or {})})
+    return settings
+
+
 for _kind in POINT_KINDS:
     for _pm in POINT_MAPS:
-        register_method(method_name(_kind, _pm), _factory(_kind, _pm))
+        register_method(method_name(_kind, _pm), _factory(_kind, _pm), _settings(_kind, _pm))

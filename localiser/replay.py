@@ -545,6 +545,8 @@ def resolve_config(config: dict | None = None, method: str = "signatures") -> di
     from .relocalise import default_config as relocalise_default
 
     cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise", "integrity"))
+    if cfg["oracle"] not in ORACLES:
+        raise ValueError(f"oracle must be one of {', '.join(ORACLES)}, got {cfg['oracle']!r}")
     loc = merge_settings(localiser_default, cfg["localiser"], "localiser", open=("posegraph",))
     loc["posegraph"] = merge_settings(posegraph_default, loc["posegraph"], "pose-graph")
     cfg["localiser"] = loc
@@ -555,23 +557,13 @@ def resolve_config(config: dict | None = None, method: str = "signatures") -> di
 
 
 def method_settings(method: str, config: dict | None = None) -> dict:
-    """The resolved settings of a registered method: scene signatures
-    (:data:`scenesig.localiser.signature_method.signature_default_config` with its detector's and solver's), the point-feature
-    methods (:func:`scenesig.localiser.pointmethod.resolve_config`); another method's overrides as given."""
-    from .detector import default_config as detector_default
-    from .signature_method import signature_default_config
-    from .solver import default_config as solver_default
+    """The resolved settings of a registered method, by the resolver it registered with
+    (:func:`scenesig.localiser.methods.method_settings`: scene signatures with their detector's and
+    solver's, the point-feature and hybrid methods with every sub-stage's); a method registered
+    without one, or an unregistered name, gets its overrides as given."""
+    from .methods import method_settings as registered_settings
 
-    if method == "signatures":
-        cfg = merge_settings(signature_default_config, config, "signature method", open=("detector", "solver"))
-        cfg["detector"] = merge_settings(detector_default, cfg["detector"], "detector")
-        cfg["solver"] = merge_settings(solver_default, cfg["solver"], "solver")
-        return cfg
-    if method in ("orb", "sift", "orb-all", "sift-all"):
-        from .pointmethod import resolve_config as point_config
-
-        return point_config({"point_map": "all" if method.endswith("-all") else "reference", **(config or {})})
-    return dict(config or {})
+    return registered_settings(method, config)
 
 
 def _settings(cfg: dict, every: int | None, realtime: bool, speed: float, oracle: str) -> dict:

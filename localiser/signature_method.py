@@ -20,7 +20,7 @@ from .methods import Measurement, MotionPrior, WeakLocaliser, register_method
 from .solver import default_config as solver_default
 from .solver import solve
 
-__all__ = ["signature_default_config", "SignatureLocaliser"]
+__all__ = ["signature_default_config", "SignatureLocaliser", "resolve_config"]
 
 #: Settings of the scene-signature method (:class:`SignatureLocaliser`): ``prior_gating`` False searches
 #: the whole image on every frame instead of the windows around the projections the motion prior predicts.
@@ -29,6 +29,17 @@ signature_default_config = {
     "solver": {},                    # overrides of localiser.solver.default_config
     "prior_gating": True,
 }
+
+
+def resolve_config(config: dict | None = None) -> dict:
+    """Every setting of the scene-signature method: ``config`` (overrides of
+    :data:`signature_default_config`) with its detector's and solver's defaults."""
+    from .detector import default_config as detector_default
+
+    cfg = merge_settings(signature_default_config, config, "signature method", open=("detector", "solver"))
+    cfg["detector"] = merge_settings(detector_default, cfg["detector"], "detector")
+    cfg["solver"] = merge_settings(solver_default, cfg["solver"], "solver")
+    return cfg
 
 
 class SignatureLocaliser(WeakLocaliser):
@@ -118,4 +129,4 @@ class SignatureLocaliser(WeakLocaliser):
         self.detector.close()
 
 
-register_method("signatures", SignatureLocaliser)
+register_method("signatures", SignatureLocaliser, resolve_config)

@@ -4,7 +4,8 @@
 
     import scenesig
 
-    summary = scenesig.build_map(["world/run00_sunny", "world/run01_night"], "world/run00_sunny", "maps/demo")
+    summary = scenesig.build_map(["world/run00_sunny", "world/run01_night"], "world/run00_sunny", "maps/demo",
+                                 layers=["signatures", "orb"])      # orb: for compare's second method
     loc = scenesig.localise("maps/demo", "world/run05_fog")           # nothing written
     loc.times, loc.poses            # (N,), (N, 4, 4): NaN before a first fix (without INS/GPS)
     loc.frames["lateral_error"]     # the per-frame table (frames.csv's columns)
@@ -14,7 +15,9 @@
 
 The command line calls these (``scenesig build-map``, ``scenesig localise``, ``scenesig compare``), so a
 result made here and one made there are the same bytes.  ``preset`` picks a settings preset
-(:mod:`scenesig.presets`: ``default``, ``paper``); ``config`` overrides it.  See ``docs/api.md``.
+(:mod:`scenesig.presets`: ``default``, ``paper``); ``config`` overrides it, and a keyword that names a
+setting (``layers``, ``oracle``) overrides ``config`` when given -- such keywords default to None, so an
+unset one leaves ``config`` (then the preset, then the defaults) in force.  See ``docs/api.md``.
 """
 from __future__ import annotations
 
@@ -36,7 +39,7 @@ def _read(run):
     return run if isinstance(run, SurveyRun) else read_run(Path(run).resolve())
 
 
-def build_map(runs, reference, out, *, jobs: int = 1, scheduler=None, config: dict | None = None,
+def build_map(runs, reference, out, *, layers=None, jobs: int = 1, scheduler=None, config: dict | None = None,
               preset: str | None = None, progress: bool = True, skip_corrupt: bool = False) -> dict:
     """Build (or resume) a map; returns the build summary (``build_summary.json``'s content).
 
@@ -46,6 +49,10 @@ def build_map(runs, reference, out, *, jobs: int = 1, scheduler=None, config: di
     reference : the reference run (a folder, one of ``runs`` or not, or a run object): places are
         defined along it.
     out : the map folder.
+    layers : the map layers to store (``scenesig build-map --layers``): a list or comma-separated text of
+        :data:`scenesig.mapping.layers.LAYERS` names, ``"all"`` for every one; ``signatures`` is always
+        built.  A method needs its layer (``compare(methods=["orb"])`` needs ``orb``).  None: ``config``'s
+        ``layers``, else the default (``signatures``).
     jobs : places built in parallel (joblib processes); ``scheduler``: a Dask scheduler address or
         ``distributed.Client`` instead (needs the ``distributed`` extra).
     config : build overrides (:data:`scenesig.mapping.build.default_config`), on top of ``preset``.
@@ -63,6 +70,10 @@ def build_map(runs, reference, out, *, jobs: int = 1, scheduler=None, config: di
         path = Path(reference).resolve()
         ref = next((r for r in loaded if r.root is not None and Path(r.root).resolve() == path), None)
         ref = ref or read_run(path)
+    if layers is not None:
+        from scenesig.mapping.layers import parse_layers
+
+        config = {**(config or {}), "layers": parse_layers(layers)}     # the keyword over config's
     cfg = apply_preset("build", config, preset)
     return _build_map(loaded, ref, out, jobs=jobs, scheduler=scheduler, config=cfg, progress=progress,
                       skip_corrupt=skip_corrupt)
@@ -144,7 +155,7 @@ class Localisation:
         return write_outputs(self.result, self.store, out, self.max_path_distance_m, figure=figure)
 
 
-def localise(map, run, *, method: str = "signatures", oracle: str = "ins", every: int | None = None,
+def localise(map, run, *, method: str = "signatures", oracle: str | None = None, every: int | None = None,
              config: dict | None = None, preset: str | None = None, realtime: bool = False, speed: float = 1.0,
              progress: bool = False, camera_check: bool = True) -> Localisation:
     """Localise one run against a map, in memory (write the CLI's files with :meth:`Localisation.write`).
@@ -154,7 +165,8 @@ def localise(map, run, *, method: str = "signatures", oracle: str = "ins", every
     map : the map folder, or a :class:`scenesig.mapping.store.MapStore` already open.
     run : the live run: a folder, or a :class:`scenesig.surveys.run.SurveyRun` already read.
     method : ``signatures`` or a point-feature baseline (``orb``, ``sift``, ``orb-all``, ``sift-all``).
-    oracle : ``ins`` (start and reset from the run's INS/GPS: the paper's protocol) or ``none``.
+    oracle : ``ins`` (start and reset from the run's INS/GPS: the paper's protocol) or ``none``; None:
+        ``config``'s ``oracle``, else the preset's, else ``ins``.
     every : the detector on every N-th frame (default :data:`scenesig.localiser.replay.DEFAULT_EVERY`, 4).
     config : replay overrides (:data:`scenesig.localiser.replay.default_config`: ``localiser``, ``method``, ...), on
         top of ``preset``.
@@ -163,14 +175,17 @@ def localise(map, run, *, method: str = "signatures", oracle: str = "ins", every
         (the comparison with the map's camera is always made; a clearly incompatible run raises
         :class:`scenesig.surveys.errors.DataError`).
     """
-    from scenesig.localiser.replay import DEFAULT_EVERY, default_config, localise_run
+    from scenesig.localiser.replay import DEFAULT_EVERY, ORACLES, default_config, localise_run
     from scenesig.surveys.settings import merge_settings
 
     cfg = apply_preset("localise", config, preset)
+    mpd = merge_settings(default_config, cfg, "replay", open=("localiser", "method", "relocalise", "integrity"))
+    oracle = mpd["oracle"] if oracle is None else oracle        # keyword > config > preset > default
+    if oracle not in ORACLES:
+        raise ValueError(f"oracle must be one of {', '.join(ORACLES)}, got {oracle!r}")
     result, store = localise_run(map, run, method, every=DEFAULT_EVERY if every is None else int(every),
                                  realtime=realtime, speed=speed, config=cfg, progress=progress, oracle=oracle,
                                  camera_check=camera_check)
-    mpd = merge_settings(default_config, cfg, "replay", open=("localiser", "method", "relocalise", "integrity"))
     return Localisation(result, store, mpd["max_path_distance_m"])
 
 
@@ -179,13 +194,14 @@ def _metrics_of(map_root, run, method, oracle, every, config, preset) -> dict:
                     preset=preset).metrics()
 
 
-def compare(map, runs, *, methods, oracle: str = "ins", jobs: int = 1, scheduler=None, every: int | None = None,
+def compare(map, runs, *, methods, oracle: str | None = None, jobs: int = 1, scheduler=None, every: int | None = None,
             config: dict | None = None, preset: str | None = None) -> list[dict]:
     """Localise every run with every method; one row per run and method (in that order): a dict of the
     metrics (:meth:`Localisation.metrics`) whose first keys are ``run`` and ``method``.
 
-    ``jobs`` localisations run in parallel (joblib processes), or on a Dask cluster with ``scheduler``
-    (an address or a ``distributed.Client``; needs the ``distributed`` extra).  Nothing is written.
+    ``oracle`` and the other settings as in :func:`localise`.  ``jobs`` localisations run in parallel
+    (joblib processes), or on a Dask cluster with ``scheduler`` (an address or a ``distributed.Client``;
+    needs the ``distributed`` extra).  Nothing is written.
     """
     from scenesig.mapping.store import MapStore
 

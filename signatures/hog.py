@@ -38,6 +38,7 @@ can compute them on several threads (:func:`thread_map`) with the same result.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import os
 import threading
 from dataclasses import dataclass, field
@@ -784,7 +785,10 @@ def thread_map(fn, items, threads: int = 1, cost=None) -> list:
                 failed.append(exc)
 
     with _PARALLEL_SECTION():
-        helpers = [threading.Thread(target=work, name=f"hog-{k}", daemon=True) for k in range(threads - 1)]
+        # each helper runs in a copy of the caller's context, so context variables the caller set
+        # (the XFeat model of signatures.xfeat.using_model) hold in the helpers too
+        helpers = [threading.Thread(target=contextvars.copy_context().run, args=(work,), name=f"hog-{k}", daemon=True)
+                   for k in range(threads - 1)]
         for h in helpers:
             h.start()
         work()

@@ -24,13 +24,15 @@ image down to fit one tile (faster; coarser keypoints).
 Matching (:func:`match_mnn`) is upstream's ``match``: mutual nearest neighbours on cosine similarity,
 kept when the similarity exceeds ``min_cossim`` (0.82, the default of upstream's ``XFeat.match``).
 
-The model file is found by :func:`model_path`: a ``model`` setting, else the environment variable
+The model file is found by :func:`model_path`: a ``model`` setting, else the model a caller named
+with :func:`using_model` (a context variable: this thread or task only), else the environment variable
 ``SCENESIG_XFEAT_MODEL``, else :data:`DEFAULT_MODEL_PATH` (``~/.local/share/scenesig/models/xfeat.onnx``,
 under ``$XDG_DATA_HOME`` when set).  ``onnxruntime`` is the optional extra ``scenesig[learned]``.
 """
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import hashlib
 import os
 import threading
@@ -61,6 +63,10 @@ def _default_model_path() -> Path:
 #: Where the model is looked for when neither the setting nor the environment variable names it.
 DEFAULT_MODEL_PATH = _default_model_path()
 
+# The model :func:`using_model` names: a context variable, not the process environment -- the library
+# keeps no process state, and one thread naming a model does not change another's lookup.
+_USING_MODEL: contextvars.ContextVar = contextvars.ContextVar("scenesig_xfeat_model", default=None)
+
 default_config = {
     "model": None,               # path of xfeat.onnx; None: $SCENESIG_XFEAT_MODEL, else DEFAULT_MODEL_PATH
     "top_k": 4096,               # upstream's default
@@ -88,7 +94,8 @@ def _merge(config: dict | None) -> dict:
 
 
 def model_path(setting=None) -> Path:
-    """The model file: ``setting``, else ``$SCENESIG_XFEAT_MODEL``, else :data:`DEFAULT_MODEL_PATH`.
+    """The model file: ``setting``, else the one named by an enclosing :func:`using_model`, else
+    ``$SCENESIG_XFEAT_MODEL``, else :data:`DEFAULT_MODEL_PATH`.
 
     Raises
     ------
@@ -97,6 +104,8 @@ def model_path(setting=None) -> Path:
     """
     if setting:
         path, source = Path(setting).expanduser(), "the 'model' setting"
+    elif _USING_MODEL.get():
+        path, source = Path(_USING_MODEL.get()).expanduser(), "scenesig.signatures.xfeat.using_model"
     elif os.environ.get(ENV_VAR):
         path, source = Path(os.environ[ENV_VAR]).expanduser(), f"${ENV_VAR}"
     else:
@@ -110,22 +119,23 @@ def model_path(setting=None) -> Path:
 
 @contextlib.contextmanager
 def using_model(path=None):
-    """Within: :func:`model_path`'s environment lookup finds ``path`` (``$SCENESIG_XFEAT_MODEL``, restored
-    on exit; None: nothing changes).  For callers that must name the model for code that takes no setting
-    -- learned cells (:func:`scenesig.signatures.hog.describe_cells`) look the model up the library's way,
-    since a bank must not store a machine's path."""
+    """Within: :func:`model_path` finds ``path`` when no ``model`` setting names one (None: nothing
+    changes).  For callers that must name the model for code that takes no setting -- learned cells
+    (:func:`scenesig.signatures.hog.describe_cells`) look the model up the library's way, since a bank
+    must not store a machine's path.
+
+    The name is held in a context variable, never in ``os.environ``: it holds for this thread (or
+    asyncio task) until the block ends, nests, and is not seen by other threads or by processes
+    started inside the block -- code that runs elsewhere enters its own ``using_model``.
+    """
     if not path:
         yield
         return
-    before = os.environ.get(ENV_VAR)
-    os.environ[ENV_VAR] = str(path)
+    token = _USING_MODEL.set(str(path))
     try:
         yield
     finally:
-        if before is None:
-            os.environ.pop(ENV_VAR, None)
-        else:
-            os.environ[ENV_VAR] = before
+        _USING_MODEL.reset(token)
 
 
 _SHA: dict = {}

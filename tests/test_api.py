@@ -118,6 +118,30 @@ def test_localise_without_truth_has_no_error_keys(tiny_world):
     assert m["every"] == 8 and m["settings"]["replay"]["every"] == 8
 
 
+def test_config_oracle_is_used_and_the_keyword_wins(tiny_world):
+    """A key given in ``config`` is used or an error; a keyword given explicitly wins over it (keyword
+    > config > preset > default; keywords default to None so an unset one does not override)."""
+    import dataclasses
+
+    from scenesig import api
+
+    runs, root = tiny_world
+    night = _night(runs)
+    blind = dataclasses.replace(night, groundtruth_times=None, groundtruth_poses=None, gps=None)   # no INS/GPS
+    with pytest.raises(Exception, match="groundtruth.tum"):         # the default oracle needs the INS/GPS
+        api.localise(root, blind)
+    m = api.localise(root, blind, config={"oracle": "none"}, every=8).metrics()     # config's oracle used
+    assert m["oracle"] == "none" and m["settings"]["replay"]["oracle"] == "none"
+    with pytest.raises(Exception, match="groundtruth.tum"):         # the explicit keyword over config
+        api.localise(root, blind, oracle="ins", config={"oracle": "none"})
+    with pytest.raises(ValueError, match="oracle must be one of"):
+        api.localise(root, night, config={"oracle": "gps"})
+    with pytest.raises(ValueError, match="orcale"):                  # a misspelt key: an error, not ignored
+        api.localise(root, night, config={"orcale": "none"})
+    with pytest.raises(ValueError, match="oracle must be one of"):
+        api.compare(root, [night], methods=["signatures"], config={"oracle": "gps"})
+
+
 def test_compare_one_row_per_run_and_method(tiny_world):
     from scenesig import api
 
@@ -166,27 +190,55 @@ def test_presets_reach_the_library(tiny_world):
     assert loc.metrics()["settings"]["method"]["prior_gating"] is False
 
 
+#: The README's library example is the first ```python block after this marker (an HTML comment, invisible
+#: on the rendered page): the README may be rearranged around it, the marker must stay above the block.
+README_EXAMPLE_MARKER = "<!-- api-example -->"
+
+
+def readme_example(text: str) -> str:
+    """The code of the README's library example, exactly as printed."""
+    found = re.search(re.escape(README_EXAMPLE_MARKER) + r"\s*```python\n(.*?)```", text, re.S)
+    assert found, f"README.md has no ```python block right after {README_EXAMPLE_MARKER!r}"
+    return found.group(1)
+
+
 def test_readme_example_runs(tiny_world, tmp_path, monkeypatch):
-    """The README's notebook-style example, run as written in a folder holding the tiny world (its
-    build given this suite's cut-down settings for speed; everything else as printed)."""
+    """The README's notebook-style example, run exactly as printed in a folder holding the tiny world.
+
+    The only patch: the build gets this suite's cut-down *speed* settings (fewer places, shapes and
+    frames; tests/build_world.py) -- never ``layers`` or anything else that decides which calls
+    succeed, and only where the README gives no settings of its own."""
     import scenesig
     from scenesig import api
 
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    code = re.search(r"<!-- api-example -->\s*```python\n(.*?)```", text, re.S).group(1)
+    code = readme_example((ROOT / "README.md").read_text(encoding="utf-8"))
     runs, _ = tiny_world
     (tmp_path / "world").mkdir()
     for r in runs:
         (tmp_path / "world" / r.root.name).symlink_to(r.root)
+    speed = {k: v for k, v in CONFIG.items() if k != "layers"}
     real = api.build_map
-    monkeypatch.setattr(api, "build_map", lambda *a, **k: real(*a, **{**k, "config": CONFIG, "progress": False}))
+
+    def build_faster(*args, **kwargs):
+        assert "config" not in kwargs, "the README passes build settings: the speed patch would replace them"
+        return real(*args, **kwargs, config=speed, progress=False)
+
+    monkeypatch.setattr(api, "build_map", build_faster)
     monkeypatch.chdir(tmp_path)
     scope = {"__name__": "readme"}
     exec(compile(code, "README.md", "exec"), scope)
     assert isinstance(scope["loc"], api.Localisation) and scope["summary"]["places"] >= 2
     assert (tmp_path / "out" / "night" / "frames.csv").is_file()
     assert math.isfinite(scope["loc"].metrics()["lateral_error_m"]["median"])
-    assert scenesig.build_map is not real    # the example went through the front door
+    assert scope["row"]["method"] == "orb"      # compare's last row: the method whose layer the example asks for
+    assert scenesig.build_map is build_faster    # the example went through the front door
+
+
+def test_readme_example_is_found_by_its_marker():
+    text = "# T\n\n" + README_EXAMPLE_MARKER + "\n```python\nx = 1\n```\n\n```python\ny = 2\n```\n"
+    assert readme_example(text) == "x = 1\n"
+    with pytest.raises(AssertionError, match="api-example"):
+        readme_example("```python\nx = 1\n```\n")
 
 
 def test_config_show_and_bad_settings_at_the_cli(capsys, tmp_path):
@@ -208,6 +260,43 @@ def test_config_show_and_bad_settings_at_the_cli(capsys, tmp_path):
         main(["localise", str(tmp_path / "m"), str(tmp_path / "r"), "--out", str(tmp_path / "o"),
               "--config", '{"localiser": {"posegraph": {"failure_distance_m": 5}}}'])
     assert exc.value.code == 2 and "failure_distance_m" in capsys.readouterr().err
+
+
+def test_config_show_lists_every_registered_method_resolved(capsys, monkeypatch):
+    """``config show`` takes its methods from the registry, each with its resolved settings (before: a
+    hard-coded list, and ``{}`` for the hybrid and XFeat methods)."""
+    from scenesig.cli import main
+    from scenesig.localiser import methods as registry
+    from scenesig.localiser.hybrid import default_config as hybrid_default
+    from scenesig.localiser.pointmethod import default_config as point_default
+
+    def settings(config=None):                      # a method registered by someone else, with its resolver
+        out = {"threshold": 0.5, **(config or {})}
+        if set(out) - {"threshold"}:
+            raise ValueError(f"unknown my-method option(s) {sorted(set(out) - {'threshold'})}")
+        return out
+
+    monkeypatch.setitem(registry._METHODS, "my-method", object)
+    monkeypatch.setitem(registry._SETTINGS, "my-method", settings)
+    assert main(["config", "show"]) == 0
+    methods = json.loads(capsys.readouterr().out)["localise"]["methods"]
+    assert set(methods) == set(registry.available_methods()) and "my-method" in methods
+    assert methods["my-method"] == {"threshold": 0.5}
+    for name in ("hybrid", "hybrid-orb", "hybrid-sift-all", "hybrid-orb-all"):
+        assert set(hybrid_default) <= set(methods[name]), name
+        assert methods[name]["points"]["point_map"] == ("all" if name.endswith("-all") else "reference")
+        assert methods[name]["signatures"]["detector"] and methods[name]["solver"]["min_inlier_fraction"] == 0.0
+    for name in ("xfeat", "xfeat-all"):
+        assert set(point_default) <= set(methods[name]) and methods[name]["match"] == "mnn", name
+    assert methods["orb"]["match"] == "ratio" and methods["sift-all"]["point_map"] == "all"
+    # the same resolvers check a replay's method settings
+    with pytest.raises(ValueError, match="signature_sigma_scal"):
+        registry.method_settings("hybrid", {"signature_sigma_scal": 2.0})
+    assert registry.method_settings("not-registered", {"a": 1}) == {"a": 1}     # a localiser object's name
+    # the paper preset's whole-image search reaches both parts of a hybrid (before: an unknown-option error)
+    assert main(["config", "show", "--preset", "paper"]) == 0
+    paper = json.loads(capsys.readouterr().out)["localise"]["methods"]["hybrid"]
+    assert paper["signatures"]["prior_gating"] is False and paper["points"]["prior_gating"] is False
 
 
 def test_missing_extra_is_a_clear_error(tiny_world, monkeypatch, capsys):

@@ -213,17 +213,38 @@ def test_xfeat_method_without_model_is_a_clear_error(tmp_path, monkeypatch):
         make_method("xfeat", MapStore.open(tmp_path / "m"), CAMERA, T_VC)
 
 
-def test_using_model_names_the_model_for_the_lookup_and_restores_the_environment(tmp_path, monkeypatch):
-    model = tmp_path / "m.onnx"
+def test_using_model_names_the_model_without_touching_the_environment(tmp_path, monkeypatch):
+    """using_model holds the name in a context variable: os.environ is never written, the block nests and
+    restores, the 'model' setting still wins, another thread does not see it, and the HOG pyramid's helper
+    threads (signatures.hog.thread_map) run in the caller's context, so learned cells find it there."""
+    import threading
+
+    from scenesig.signatures.hog import thread_map
+
+    model, other = tmp_path / "m.onnx", tmp_path / "other.onnx"
     model.write_bytes(b"x")
-    monkeypatch.setenv(xfeat.ENV_VAR, "")
-    monkeypatch.delenv(xfeat.ENV_VAR)
-    with xfeat.using_model(model):
-        assert xfeat.model_path() == model
-    assert xfeat.ENV_VAR not in os.environ
+    other.write_bytes(b"y")
     monkeypatch.setenv(xfeat.ENV_VAR, str(tmp_path / "users.onnx"))
+    before = dict(os.environ)
     with xfeat.using_model(model):
+        assert dict(os.environ) == before
         assert xfeat.model_path() == model
-    assert os.environ[xfeat.ENV_VAR] == str(tmp_path / "users.onnx")
+        assert xfeat.model_path(other) == other              # the setting wins
+        with xfeat.using_model(other):
+            assert xfeat.model_path() == other
+        assert xfeat.model_path() == model
+        assert thread_map(lambda _: xfeat.model_path(), range(4), threads=2) == [model] * 4
+        seen = []
+        t = threading.Thread(target=lambda: seen.append(xfeat._USING_MODEL.get()))
+        t.start()
+        t.join()
+        assert seen == [None]                                # another thread: the lookup as it was
+    assert dict(os.environ) == before
+    with pytest.raises(xfeat.ModelNotFoundError, match="users.onnx"):     # back to $SCENESIG_XFEAT_MODEL
+        xfeat.model_path()
     with xfeat.using_model(None):                    # nothing named: the lookup as it was
-        assert os.environ[xfeat.ENV_VAR] == str(tmp_path / "users.onnx")
+        with pytest.raises(xfeat.ModelNotFoundError, match="users.onnx"):
+            xfeat.model_path()
+    with xfeat.using_model(tmp_path / "missing.onnx"):
+        with pytest.raises(xfeat.ModelNotFoundError, match="using_model"):   # the message says who named it
+            xfeat.model_path()

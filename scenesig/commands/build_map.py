@@ -65,11 +65,12 @@ def run(args) -> int:
     from scenesig.presets import apply_preset
 
     config = load_config(args.config) or {}
+    layers = None
     if args.layers is not None:
         from scenesig.mapping.layers import parse_layers
 
         try:
-            config["layers"] = parse_layers(args.layers)
+            layers = parse_layers(args.layers)
         except ValueError as exc:
             print(f"scenesig build-map: error: {exc}", file=sys.stderr)
             return 2
@@ -81,7 +82,7 @@ def run(args) -> int:
         resolve_config(apply_preset("build", config, args.preset))     # a misspelt option: exit 2, nothing read
     except (TypeError, ValueError) as exc:
         args._parser.error(f"--config: {exc}")
-    summary = build_map(args.runs, args.reference, args.out, jobs=args.jobs, scheduler=args.scheduler,
+    summary = build_map(args.runs, args.reference, args.out, layers=layers, jobs=args.jobs, scheduler=args.scheduler,
                         config=config, preset=args.preset, skip_corrupt=args.skip_corrupt)
     print_places(summary)
     print(json.dumps({k: v for k, v in summary.items() if k != "per_place"}, indent=2))

@@ -16,7 +16,9 @@ def register(groups):
     p.add_argument("runs", nargs="+", metavar="RUN", help="survey runs to localise")
     p.add_argument("--methods", default="signatures,orb,sift",
                    help="comma-separated methods (default signatures,orb,sift)")
-    p.add_argument("--oracle", choices=("ins", "none"), default="ins")
+    p.add_argument("--oracle", choices=("ins", "none"), default=None,
+                   help="ins: start and reset from the runs' INS/GPS; none: no INS/GPS (default: --config's "
+                        "oracle, else ins)")
     p.add_argument("--every", type=positive_int, default=None, help="detector on every N-th frame (default 4)")
     p.add_argument("--jobs", type=positive_int, default=1, help="localisations in parallel (joblib)")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address (needs the distributed extra)")

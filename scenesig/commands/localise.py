@@ -36,9 +36,10 @@ def register(groups):
     mode.add_argument("--realtime", action="store_true", help="threads and queues, stale frames dropped")
     p.add_argument("--speed", type=float, default=1.0,
                    help="with --realtime: replay speed as a multiple of the recorded rate (default 1)")
-    p.add_argument("--oracle", choices=("ins", "none"), default="ins",
-                   help="ins (default, the paper's protocol): start and reset from the run's INS/GPS; none: no "
-                        "INS/GPS -- global localisation from the map at start-up, relocalisation when lost")
+    p.add_argument("--oracle", choices=("ins", "none"), default=None,
+                   help="ins (the paper's protocol): start and reset from the run's INS/GPS; none: no "
+                        "INS/GPS -- global localisation from the map at start-up, relocalisation when lost "
+                        "(default: --config's oracle, else ins)")
     p.add_argument("--config", default=None,
                    help="replay options (overrides of localiser.replay.default_config: localiser, method, "
                         "relocalise, ...) as JSON text or a .json file")
