@@ -33,6 +33,10 @@ The JSON adds ``folds`` (tiles, every candidate's training figures, the chosen s
 candidates tie on training success the faster wins, so on a loaded machine the chosen settings (not
 the trials) may differ between runs of one seed.
 
+**The defaults** (``--choose-defaults``): the same search on *all* tiles picks what each method's
+``default_config`` holds (:func:`choose_defaults`; no trial is reported); ``--folds`` with K = the
+number of tiles (leave one tile out) measures how that choice carries to a tile it did not see.
+
 Run: ``scenesig aerial bench TILES_DIR --methods mrsmcc,sism,sift,orb,signatures --trials 200
 --seed 1 --json out/aerial.json --figure out/aerial``.
 """
@@ -54,26 +58,65 @@ METHODS = ("mrsmcc", "mrsm", "sism", "sift", "orb", "xfeat", "signatures")
 SUCCESS_PX = 25.0
 
 
-_COARSE_ROTATIONS = (-10.0, -5.0, 0.0, 5.0, 10.0)      # attitude hypotheses every 5 deg (default 2.5)
+_FINE_ROTATIONS = (-10.0, -7.5, -5.0, -2.5, 0.0, 2.5, 5.0, 7.5, 10.0)   # attitude hypotheses every 2.5 deg
+_COARSE_ROTATIONS = (-10.0, -5.0, 0.0, 5.0, 10.0)                     # every 5 deg
+#: The MRSM-CC settings the search varies, at the values it varies the others around.
+_MRSM_BASE = {"highpass_sigma": 12.0, "cc_grid": (5, 5), "max_iterations": 4,
+              "attitude_rotations_deg": _FINE_ROTATIONS}
 
-#: Cross-validation (``--folds K``): the settings each method's search tries on the training tiles,
-#: as overrides of the method's ``default_config`` (``{}`` = the defaults).  MRSM-CC: the high-pass
-#: of the NCC (off, and three widths), the colour-constancy window grid, and for speed fewer
-#: iterations and attitude hypotheses every 5 deg instead of 2.5;
-#: MRSM the same without colour constancy; SISM the search resolution; SIFT / ORB Lowe's ratio;
-#: signatures the detection probability (the banks do not depend on it).
+
+def _around(base: dict, *changes: dict) -> list:
+    """``base`` and ``base`` with each of ``changes``: candidates that name every searched key, so
+    the searched settings do not move when a method's defaults do."""
+    return [{**base, **c} for c in ({},) + changes]
+
+
+#: Cross-validation (``--folds K``) and ``--choose-defaults``: the settings each method's search
+#: tries, each candidate naming the value of every key searched (the rest stay at the method's
+#: ``default_config``).  MRSM-CC: the high-pass of the NCC (off, and three widths), the
+#: colour-constancy window grid (the paper's 5 x 5, and 3 x 3), and for speed fewer iterations
+#: and attitude hypotheses every 5 deg instead of 2.5; MRSM the same without colour constancy;
+#: SISM the search resolution; SIFT / ORB Lowe's ratio; signatures the detection probability
+#: (the banks do not depend on it).  The defaults are the candidates ``--choose-defaults`` picks
+#: on all shared tiles (docs/aerial.md).
 SEARCH = {
-    "mrsmcc": [{}, {"highpass_sigma": 0.0}, {"highpass_sigma": 6.0}, {"highpass_sigma": 24.0},
-               {"cc_grid": (3, 3)}, {"max_iterations": 2}, {"attitude_rotations_deg": _COARSE_ROTATIONS},
-               {"attitude_rotations_deg": _COARSE_ROTATIONS, "max_iterations": 2}],
-    "mrsm": [{}, {"highpass_sigma": 0.0}, {"highpass_sigma": 6.0}, {"highpass_sigma": 24.0},
-             {"max_iterations": 2}, {"attitude_rotations_deg": _COARSE_ROTATIONS}],
-    "sism": [{}, {"coarse_scale": 0.25}],
-    "sift": [{"ratio": 0.7}, {}, {"ratio": 0.9}],
-    "orb": [{"ratio": 0.7}, {}, {"ratio": 0.9}],
-    "signatures": [{"min_prob": 0.2}, {}, {"min_prob": 0.5}],
+    "mrsmcc": _around(_MRSM_BASE, {"highpass_sigma": 0.0}, {"highpass_sigma": 6.0}, {"highpass_sigma": 24.0},
+                      {"cc_grid": (3, 3)}, {"max_iterations": 2}, {"attitude_rotations_deg": _COARSE_ROTATIONS},
+                      {"attitude_rotations_deg": _COARSE_ROTATIONS, "max_iterations": 2}),
+    "mrsm": _around({k: v for k, v in _MRSM_BASE.items() if k != "cc_grid"},
+                    {"highpass_sigma": 0.0}, {"highpass_sigma": 6.0}, {"highpass_sigma": 24.0},
+                    {"max_iterations": 2}, {"attitude_rotations_deg": _COARSE_ROTATIONS}),
+    "sism": [{"coarse_scale": 0.5}, {"coarse_scale": 0.25}],
+    "sift": [{"ratio": 0.7}, {"ratio": 0.8}, {"ratio": 0.9}],
+    "orb": [{"ratio": 0.7}, {"ratio": 0.8}, {"ratio": 0.9}],
+    "signatures": [{"min_prob": 0.2}, {"min_prob": 0.3}, {"min_prob": 0.5}],
     "xfeat": [{}],      # its authors' matcher and settings (Potje et al. 2024): nothing to choose
 }
+
+
+def method_defaults(method: str) -> dict:
+    """A method's ``default_config`` (the module that holds its settings)."""
+    from scenesig.aerial import mrsmcc, pointmatch, signatures, sism
+
+    module = {"mrsmcc": mrsmcc, "mrsm": mrsmcc, "sism": sism, "sift": pointmatch, "orb": pointmatch,
+              "xfeat": pointmatch, "signatures": signatures}[method]
+    return module.default_config
+
+
+def _same(a, b) -> bool:
+    """Settings equality that does not tell a tuple from a list (JSON round trips turn one into the other)."""
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    return a == b
+
+
+def searched_defaults(method: str) -> dict:
+    """The method's defaults of the keys its search varies."""
+    keys = dict.fromkeys(k for c in SEARCH[method] for k in c)
+    defaults = method_defaults(method)
+    return {k: defaults[k] for k in keys}
 
 
 def _setup(method: str, images, landmarks, cache_dir, config: dict | None = None):
@@ -163,6 +206,75 @@ def summarise(errors: np.ndarray, seconds: np.ndarray) -> dict:
             "seconds_per_trial": float(np.mean(seconds)) if len(seconds) else None}
 
 
+def _search(methods, images, names, landmarks, cache_dir, search_trials: int, search_seed: int, bar=None):
+    """Every method's :data:`SEARCH` on ``search_trials`` trials of ``search_seed`` over ``images``;
+    returns ``(search, chosen)``: per method every candidate's figures, and the one :func:`choose` keeps."""
+    search, chosen = {}, {}
+    for m in methods:
+        cands = SEARCH[m]
+        res = []
+        if len(cands) > 1:
+            for c in cands:
+                ests_c, _ = _setup(m, images, landmarks, cache_dir, c)
+                e, sc, _ = _run_trials({m: ests_c}, images, range(int(search_trials)), search_seed, names)
+                res.append({"config": c, **summarise(np.array(e[m]), np.array(sc[m]))})
+            if bar is not None:
+                bar.update(int(search_trials))
+        chosen[m] = cands[choose(res)] if res else cands[0]
+        search[m] = res
+    return search, chosen
+
+
+def choose_defaults(tiles_dir, methods=("mrsmcc",), search_trials: int = 40, search_seed: int = 0,
+                    json_path=None, cache_dir=None, progress: bool = True) -> dict:
+    """Choose every method's settings on *all* tiles, by the search of the folds (:data:`SEARCH`,
+    :func:`choose`, ``search_trials`` trials of ``search_seed``; the landmark library learns from
+    all tiles): what the methods' ``default_config`` should hold.
+
+    No figure of this is a held-out one -- it is the selection step alone; ``--folds K`` with
+    K = the number of tiles measures how this selection carries to a tile it did not see.  Returns
+    (and writes to ``json_path``) ``{"tiles", "search_trials", "search_seed", "search", "chosen",
+    "defaults", "defaults_are_chosen"}``: per method every candidate's figures, the chosen
+    candidate, the current defaults of the searched keys, and whether they are the chosen ones.
+    """
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    from scenesig.aerial.geo import load_tiles
+    from scenesig.aerial.landmarks import LandmarkModel
+
+    methods = list(dict.fromkeys(methods))
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        raise ValueError(f"unknown method(s) {', '.join(bad)}; choose from {', '.join(METHODS)}")
+    if search_trials < 1:
+        raise ValueError("--search-trials must be >= 1")
+    cv2.setNumThreads(1)
+    tiles = load_tiles(tiles_dir)
+    images = [t.image() for t in tiles]
+    names = [t.name for t in tiles]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=search_trials * sum(len(SEARCH[m]) > 1 for m in methods), desc="aerial search",
+                   unit="trial", file=sys.stderr)
+    with threadpool_limits(limits=1):
+        landmarks = LandmarkModel().fit(images) if {"mrsmcc", "mrsm"} & set(methods) else None
+        search, chosen = _search(methods, images, names, landmarks, cache_dir, search_trials, search_seed, bar)
+    if bar is not None:
+        bar.close()
+    defaults = {m: searched_defaults(m) for m in methods}
+    doc = {"tiles": names, "search_trials": int(search_trials), "search_seed": int(search_seed),
+           "rule": "highest success rate on the search trials; ties to the fewer CPU seconds per trial",
+           "search": search, "chosen": chosen, "defaults": defaults,
+           "defaults_are_chosen": {m: _same({k: defaults[m][k] for k in chosen[m]}, chosen[m]) for m in methods}}
+    if json_path is not None:
+        json_path = Path(json_path)
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(json_path, json.dumps(doc, indent=1, default=_jsonable) + "\n")
+    return doc
+
+
 def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatures"),
                   trials: int = 200, seed: int = 1, json_path=None, figure_dir=None,
                   cache_dir=None, progress: bool = True, folds: int | None = None,
@@ -232,23 +344,10 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
                     landmarks = LandmarkModel().fit(tr_img)    # the landmark library: training tiles only
                     setup["landmarks"] = setup.get("landmarks", 0.0) + time.process_time() - t0
                 fd = {"fold": f, "train_tiles": [names[i] for i in train], "test_tiles": [names[i] for i in test],
-                      "search_trials": int(search_trials), "search_seed": int(search_seed),
-                      "search": {}, "chosen": {}}
-                chosen = {}
-                for m in methods:
-                    cands = SEARCH[m]
-                    res = []
-                    if len(cands) > 1:
-                        for c in cands:
-                            ests_c, _ = _setup(m, tr_img, landmarks, cache_dir, c)
-                            e, sc, _ = _run_trials({m: ests_c}, tr_img, range(int(search_trials)), search_seed,
-                                                   [names[i] for i in train])
-                            res.append({"config": c, **summarise(np.array(e[m]), np.array(sc[m]))})
-                        if bar is not None:
-                            bar.update(int(search_trials))
-                    chosen[m] = cands[choose(res)] if res else cands[0]
-                    fd["search"][m] = res
-                    fd["chosen"][m] = chosen[m]
+                      "search_trials": int(search_trials), "search_seed": int(search_seed)}
+                fd["search"], fd["chosen"] = _search(methods, tr_img, [names[i] for i in train], landmarks,
+                                                     cache_dir, search_trials, search_seed, bar)
+                chosen = fd["chosen"]
                 ests = {}
                 for m in methods:
                     ests[m], t = _setup(m, te_img, landmarks, cache_dir, chosen[m])
@@ -398,6 +497,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--search-trials", type=int, default=40,
                    help="with --folds: training trials per candidate setting and fold")
     p.add_argument("--search-seed", type=int, default=0, help="with --folds: seed of the training trials")
+    p.add_argument("--choose-defaults", action="store_true",
+                   help="run only the search, on all tiles (--search-trials, --search-seed): prints every "
+                        "candidate's figures, the chosen settings and whether they are the methods' defaults")
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -405,7 +507,15 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="scenesig aerial bench", description=__doc__.split("\n")[0])
     add_arguments(p)
     args = p.parse_args(argv)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
+        if args.choose_defaults:
+            if args.folds is not None:
+                raise ValueError("--choose-defaults searches all tiles; it takes no --folds")
+            doc = choose_defaults(args.tiles, methods, args.search_trials, args.search_seed, args.json, args.cache,
+                                  progress=not args.no_progress)
+            print(json.dumps(doc, indent=1, default=_jsonable))
+            return 0
         doc = run_benchmark(args.tiles, [m.strip() for m in args.methods.split(",") if m.strip()],
                             args.trials, args.seed, args.json, args.figure, args.cache,
                             progress=not args.no_progress, folds=args.folds,

@@ -266,6 +266,29 @@ def test_benchmark_folds_report_held_out_tiles_only(tmp_path, capsys):
     assert "--folds must be between 2" in capsys.readouterr().err
 
 
+def test_choose_defaults_searches_all_tiles(tmp_path, capsys):
+    """--choose-defaults: the folds' search on every tile; reports the chosen candidate and whether the
+    methods' defaults are it.  Every method's defaults are one of its search candidates."""
+    from scenesig import cli
+    from scenesig.benchmarks import aerial as bench
+
+    for m in bench.SEARCH:
+        if bench.SEARCH[m] != [{}]:
+            assert any(bench._same(bench.searched_defaults(m), c) for c in bench.SEARCH[m]), m
+    root = _write_tiles(tmp_path / "tiles", n=2)
+    doc = bench.choose_defaults(root, ["sism", "orb"], search_trials=1, json_path=tmp_path / "c.json",
+                                progress=False)
+    assert doc["tiles"] == ["t0.png", "t1.png"] and json.loads((tmp_path / "c.json").read_text()) == \
+        json.loads(json.dumps(doc, default=bench._jsonable))
+    for m in ("sism", "orb"):
+        assert len(doc["search"][m]) == len(bench.SEARCH[m]) and doc["chosen"][m] in bench.SEARCH[m]
+        assert doc["defaults"][m] == bench.searched_defaults(m)
+        assert doc["defaults_are_chosen"][m] == bench._same(doc["defaults"][m], doc["chosen"][m])
+    assert bench._same({"cc_grid": (3, 3)}, {"cc_grid": [3, 3]}) and not bench._same((3, 3), (5, 5))
+    assert cli.main(["aerial", "bench", str(root), "--choose-defaults", "--folds", "2", "--no-progress"]) == 2
+    assert "takes no --folds" in capsys.readouterr().err
+
+
 def test_search_rule_prefers_success_then_speed():
     from scenesig.benchmarks.aerial import choose
 
