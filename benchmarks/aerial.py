@@ -315,7 +315,8 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
     bar = None
     if progress:
         from tqdm import tqdm
-        total = trials if folds is None else trials + int(folds) * search_trials * sum(len(SEARCH[m]) > 1 for m in methods)
+        searched = sum(len(SEARCH[m]) > 1 for m in methods)
+        total = trials if folds is None else trials + int(folds) * search_trials * searched
         bar = tqdm(total=total, desc="aerial trials", unit="trial", file=sys.stderr)
     fold_docs = []
     with threadpool_limits(limits=1):

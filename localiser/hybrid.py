@@ -85,9 +85,9 @@ default_config = {
     # only the joint solve's own prior check after refinement, as the point method does)
     "consensus_prior_gate": True,
     "solver": {},                # overrides of localiser.solver.default_config for the joint solve
-    # True / False: both parts' prior gating (what the paper preset and --no-prior-gating set for every
-    # method); None: each part's own setting
-    "prior_gating": None,
+    # both parts' prior gating (what the paper preset and --no-prior-gating set for every method), unless
+    # a part's own settings ("signatures" / "points") name theirs
+    "prior_gating": True,
 }
 
 
@@ -96,9 +96,9 @@ def _merge(config: dict | None) -> dict:
 
 
 def _parts(cfg: dict, point_map: str) -> tuple[dict, dict]:
-    """The signature part's and the point part's overrides (``prior_gating`` given to both)."""
-    gate = {} if cfg["prior_gating"] is None else {"prior_gating": bool(cfg["prior_gating"])}
-    return {**cfg["signatures"], **gate}, {**cfg["points"], **gate, "point_map": point_map}
+    """The signature part's and the point part's overrides (``prior_gating`` under each part's own)."""
+    gate = {"prior_gating": bool(cfg["prior_gating"])}
+    return {**gate, **cfg["signatures"]}, {**gate, **cfg["points"], "point_map": point_map}
 
 
 @dataclass

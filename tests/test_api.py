@@ -271,9 +271,9 @@ def test_config_show_lists_every_registered_method_resolved(capsys, monkeypatch)
     from scenesig.localiser.pointmethod import default_config as point_default
 
     def settings(config=None):                      # a method registered by someone else, with its resolver
-        out = {"threshold": 0.5, **(config or {})}
-        if set(out) - {"threshold"}:
-            raise ValueError(f"unknown my-method option(s) {sorted(set(out) - {'threshold'})}")
+        out = {"threshold": 0.5, "prior_gating": True, **(config or {})}
+        if set(out) - {"threshold", "prior_gating"}:
+            raise ValueError(f"unknown my-method option(s) {sorted(set(out) - {'threshold', 'prior_gating'})}")
         return out
 
     monkeypatch.setitem(registry._METHODS, "my-method", object)
@@ -281,7 +281,7 @@ def test_config_show_lists_every_registered_method_resolved(capsys, monkeypatch)
     assert main(["config", "show"]) == 0
     methods = json.loads(capsys.readouterr().out)["localise"]["methods"]
     assert set(methods) == set(registry.available_methods()) and "my-method" in methods
-    assert methods["my-method"] == {"threshold": 0.5}
+    assert methods["my-method"] == {"threshold": 0.5, "prior_gating": True}
     for name in ("hybrid", "hybrid-orb", "hybrid-sift-all", "hybrid-orb-all"):
         assert set(hybrid_default) <= set(methods[name]), name
         assert methods[name]["points"]["point_map"] == ("all" if name.endswith("-all") else "reference")
