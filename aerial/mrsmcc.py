@@ -61,7 +61,9 @@ default_config = {
     "cc_grid": (5, 5),              # §3.1: 5 x 5 non-overlapping windows
     "region_size": 64,              # §4.3: 64 x 64 sub-regions
     "min_regions": 4,               # Step 4: multi-region matching needs more than three regions
-    "max_iterations": 4,            # Step 7 bound
+    # Step 7 bound.  2: chosen by ``scenesig aerial bench --choose-defaults`` on all shared tiles (docs/aerial.md;
+    # five candidates placed all 40 search trials, 2 iterations the fastest of them)
+    "max_iterations": 2,
     "epsilon_px": 1.0,              # eq. 1 convergence threshold (reference px)
     "coarse_scale": 0.5,            # global search resolution (then refined at full resolution)
     "refine_radius_px": 3,          # full-resolution refinement around the coarse peak
