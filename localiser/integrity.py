@@ -60,6 +60,7 @@ log = logging.getLogger(__name__)
 default_config = {
     "enabled": True,
     "methods": ["signatures"],     # the methods whose statistics the thresholds were chosen for
+    "sprt": True,                  # the sequential test on the map's firing rates (where the map has them)
     # Every threshold was chosen on development runs that are not reported (docs/integrity.md,
     # "Integrity monitoring"): the right map's largest / smallest value there, and another world's.
     "window": 4,                   # detector frames in the tracking window
