@@ -107,14 +107,19 @@ def simulate_world(layout: Layout, seed: int) -> Path:
 
 
 def build_world_map(layout: Layout, seed: int) -> Path:
-    """The map of the six training runs (``build_map`` resumes an interrupted build itself)."""
+    """The map of the six training runs, with its firing rates (``build_map`` resumes an interrupted build
+    itself)."""
     from scenesig.api import build_map
 
+    from scenesig.localiser import firing
+    from scenesig.surveys.run import read_run
+
     out = layout.map(seed)
-    if (out / "manifest.json").exists():
-        return out
     runs = [layout.runs(seed) / n for n in layout.run_names()[:len(TRAINING)]]
-    build_map([str(r) for r in runs], str(runs[0]), str(out), jobs=1, progress=False)
+    if not (out / "manifest.json").exists():
+        build_map([str(r) for r in runs], str(runs[0]), str(out), jobs=1, progress=False)   # writes the rates too
+    if not (out / firing.FILE).exists():        # a map cached before the rates existed
+        firing.for_map(out, [read_run(r, check_images=False) for r in runs])
     return out
 
 

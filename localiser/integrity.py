@@ -60,7 +60,16 @@ log = logging.getLogger(__name__)
 default_config = {
     "enabled": True,
     "methods": ["signatures"],     # the methods whose statistics the thresholds were chosen for
-    "sprt": True,                  # the sequential test on the map's firing rates (where the map has them)
+    # The sequential test (Wald's SPRT in probation, Page's CUSUM while tracking) on the map's firing rates
+    # (localiser.firing; docs/integrity.md, "The sequential test"): it replaces the two support thresholds
+    # on maps that have the rates; maps built before them keep the thresholds.
+    "sprt": True,
+    "sprt_alpha": 0.01,            # designed P(a fix on a map that does not explain the run is accepted)
+    "sprt_beta": 0.01,             # designed P(a right map's fix is refused in probation)
+    "sprt_own_fraction": 0.5,      # H1's rate: other + this x (own - other) (unseen conditions fire less)
+    "sprt_dispersion": 4.0,        # the log-likelihood ratio is divided by this (signatures fire together)
+    "cusum_h": 8.0,                # tracking alert when Page's CUSUM of -LLR reaches this (ARL >= e^h frames)
+    "probation_max_frames": 30,    # a probation the test has not decided by then ends with an alert
     # Every threshold was chosen on development runs that are not reported (docs/integrity.md,
     # "Integrity monitoring"): the right map's largest / smallest value there, and another world's.
     "window": 4,                   # detector frames in the tracking window
@@ -147,10 +156,25 @@ class IntegrityMonitor:
     history : every frame's :class:`FrameStats` (for the thresholds' calibration, ``docs/integrity.md``).
     """
 
-    def __init__(self, config: dict | None = None, method: str = "signatures", t0: float = 0.0):
+    def __init__(self, config: dict | None = None, method: str = "signatures", t0: float = 0.0,
+                 firing: dict | None = None):
         self.config = merge_settings(default_config, config, "integrity")
         self.t0 = float(t0)
         self.active = bool(self.config["enabled"]) and method in self.config["methods"]
+        cfg = self.config
+        #: per place (own, other) firing rates (localiser.firing) when the sequential test is on, else None
+        self.rates = dict(firing) if (self.active and cfg["sprt"] and firing) else None
+        if self.active and cfg["sprt"] and not firing:
+            log.info("the map has no firing rates (built before they existed): the integrity monitor uses its "
+                     "support thresholds instead of the sequential test")
+        a, b = float(cfg["sprt_alpha"]), float(cfg["sprt_beta"])
+        if not (0 < a < 0.5 and 0 < b < 0.5):
+            raise ValueError(f"integrity: sprt_alpha and sprt_beta must be in (0, 0.5), got {a}, {b}")
+        # Wald's bounds (1945): accept H1 (the map explains the run) at log((1-β)/α), H0 at log(β/(1-α))
+        self.upper = float(np.log((1 - b) / a))
+        self.lower = float(np.log(b / (1 - a)))
+        self._llr = 0.0          # the running SPRT statistic (probation, or recovery after an alert)
+        self._cusum = 0.0        # Page's CUSUM of -LLR while tracking
         self.state = "trusted"
         self.alerts: list[Alert] = []
         self.history: list[FrameStats] = []
@@ -187,12 +211,26 @@ class IntegrityMonitor:
                            f"{cfg['max_nis']:g}), {np.nanmedian([f.innovation_m for f in solved]):.2f} m")
         searched = sum(f.searched for f in frames)
         need = cfg["min_support"] if min_support is None else min_support
-        if searched:
+        if searched and self.rates is None:       # with firing rates the sequential test judges the support
             support = sum(f.inliers for f in frames) / searched
             if support < need:
                 why.append(f"{support:.0%} of the signatures searched confirmed over {len(frames)} frames "
                            f"(at least {need:.0%})")
         return why
+
+    def frame_llr(self, f: FrameStats) -> float:
+        """log P(frame | the map explains it) / P(frame | it does not): the frame's ``inliers`` of ``searched``
+        signatures as Bernoulli draws at the place's rates (H1: ``other + γ (own - other)``, H0: ``other``),
+        divided by the dispersion (signatures of one frame fire together, not independently).  0 where the
+        place has no rates or nothing was searched."""
+        if self.rates is None or f.searched <= 0 or f.place not in self.rates:
+            return 0.0
+        own, other = self.rates[f.place]
+        cfg = self.config
+        p0 = float(np.clip(other, 1e-3, 0.5))
+        p1 = float(np.clip(p0 + cfg["sprt_own_fraction"] * (own - p0), p0 + 1e-3, 0.999))
+        k, n = min(int(f.inliers), int(f.searched)), int(f.searched)
+        return float((k * np.log(p1 / p0) + (n - k) * np.log((1 - p1) / (1 - p0))) / cfg["sprt_dispersion"])
 
     # -------------------------------------------------------------------------- decisions
     def searching(self, t: float, place: int, distance_m: float, verified: int) -> bool:
@@ -224,6 +262,7 @@ class IntegrityMonitor:
         self._probation = []
         self._probation_misses = 0
         self._window.clear()
+        self._llr = 0.0
 
     def assess(self, stats: FrameStats) -> str:
         """Decide on one tracked detector frame: ``"accept"`` (its fix may be used), ``"tentative"``
@@ -246,7 +285,17 @@ class IntegrityMonitor:
             done = (len(solved) >= cfg["probation_frames"]
                     and len({f.place for f in solved}) >= cfg["probation_places"])
             support = self._support(self._probation)
-            if done and support < cfg["probation_min_support"]:     # over the whole probation
+            if self.rates is not None:                               # Wald's SPRT
+                self._llr += self.frame_llr(stats)
+                if self._llr <= self.lower:
+                    why.append(f"sequential test: {support:.0%} of the signatures searched confirmed over the "
+                               f"{len(self._probation)} frames since the global fix, the firing rate of another "
+                               f"place (log-likelihood ratio {self._llr:.1f} <= {self.lower:.1f})")
+                elif len(self._probation) >= cfg["probation_max_frames"] and self._llr < self.upper:
+                    why.append(f"sequential test undecided after {len(self._probation)} frames (log-likelihood "
+                               f"ratio {self._llr:.1f}, {support:.0%} of the signatures searched confirmed)")
+                done = done and self._llr >= self.upper
+            elif done and support < cfg["probation_min_support"]:     # over the whole probation
                 why.append(f"{support:.0%} of the signatures searched confirmed over the {len(self._probation)} "
                            f"frames since the global fix (at least {cfg['probation_min_support']:.0%})")
             if why:
@@ -255,15 +304,30 @@ class IntegrityMonitor:
                 self.state = "trusted"
                 self._search_from = None          # found: the next search starts afresh
                 self._window.extend(self._probation[-int(cfg["window"]):])
+                self._cusum = 0.0
                 return "accept"
             return "tentative"
         self._window.append(stats)
         why = self.failing(self._window) if len(self._window) >= cfg["window"] else []
+        llr = self.frame_llr(stats)
         if self.state == "alerted":
+            if self.rates is not None:            # recovery (with INS/GPS): the SPRT must accept again
+                self._llr = max(self._llr + llr, self.lower)
+                if self._llr < self.upper:
+                    return "refuse"
             if not stats.solved or why or len(self._window) < cfg["window"]:
                 return "refuse"
             self.state = "trusted"
+            self._cusum = 0.0
             return "accept"
+        if self.rates is not None:
+            # Page's CUSUM of the evidence against the map: resets while frames confirm it, alerts when
+            # the firing has looked like another place's for long enough (ARL under H1 >= e^h frames)
+            self._cusum = max(0.0, self._cusum - llr)
+            if self._cusum >= cfg["cusum_h"]:
+                why.append(f"sequential test: the signatures searched fire at another place's rate (CUSUM "
+                           f"{self._cusum:.1f} >= {cfg['cusum_h']:g}; last {len(self._window)} frames: "
+                           f"{self._support(self._window):.0%} confirmed)")
         if why:
             return self._alert(stats, why, len(self._window))
         return "accept"
@@ -277,6 +341,7 @@ class IntegrityMonitor:
         self.state = "alerted"
         self._window.clear()
         self._probation = []
+        self._llr = self._cusum = 0.0
         a = Alert(stats.t, stats.place, "; ".join(why), int(frames))
         self.alerts.append(a)
         if not self._said:

@@ -631,7 +631,10 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
         reloc = Relocaliser(store, method, loc, cfg["relocalise"] or None, retrieval=retrieval)
     from .integrity import IntegrityMonitor
 
-    monitor = IntegrityMonitor(cfg["integrity"] or None, method.name, t0=float(run.odometry_times[0]))
+    from .firing import load as load_firing
+
+    monitor = IntegrityMonitor(cfg["integrity"] or None, method.name, t0=float(run.odometry_times[0]),
+                               firing=load_firing(store))
     rec = _Recorder(run)
     extra = {}
     wall0 = time.perf_counter()

@@ -51,6 +51,7 @@ def build_map(runs, reference, out, *, jobs: int = 1, scheduler=None, config: di
     config : build overrides (:data:`scenesig.mapping.build.default_config`), on top of ``preset``.
     preset : a settings preset (:data:`scenesig.presets.PRESETS`), default the project's defaults.
     """
+    from scenesig.localiser import firing
     from scenesig.mapping.build import build_map as _build_map
     from scenesig.surveys.run import SurveyRun, read_run
 
@@ -64,8 +65,11 @@ def build_map(runs, reference, out, *, jobs: int = 1, scheduler=None, config: di
         ref = next((r for r in loaded if r.root is not None and Path(r.root).resolve() == path), None)
         ref = ref or read_run(path)
     cfg = apply_preset("build", config, preset)
-    return _build_map(loaded, ref, out, jobs=jobs, scheduler=scheduler, config=cfg, progress=progress,
-                      skip_corrupt=skip_corrupt)
+    summary = _build_map(loaded, ref, out, jobs=jobs, scheduler=scheduler, config=cfg, progress=progress,
+                         skip_corrupt=skip_corrupt)
+    # the places' firing rates, for the integrity monitor's sequential test (scenesig.localiser.firing)
+    firing.for_map(out, loaded + ([ref] if all(r is not ref for r in loaded) else []))
+    return summary
 
 
 class Localisation:
