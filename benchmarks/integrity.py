@@ -298,3 +298,56 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":      # pragma: no cover
     sys.exit(main())
+
+
+# ------------------------------------------------------------------------------------ choosing settings
+def recorded_streams(layout: Layout, seeds) -> list[dict]:
+    """Every calibration localisation's recorded frame statistics, with its map's firing rates."""
+    from scenesig.localiser import firing
+    from scenesig.localiser.integrity import FrameStats
+    from scenesig.mapping.store import MapStore
+
+    out = []
+    for seed in seeds:
+        folder = layout.world(seed) / "loc-calibrate"
+        if not folder.is_dir():
+            continue
+        rates = firing.load(MapStore.open(layout.map(seed)))
+        for run_dir in sorted(folder.iterdir()):
+            stats_path, row_path = run_dir / "integrity_stats.json", run_dir / "row.json"
+            if not (stats_path.exists() and row_path.exists()):
+                continue
+            row = json.loads(row_path.read_text())
+            stats = [FrameStats(**d) for d in json.loads(stats_path.read_text())]
+            out.append({"seed": seed, "kind": row["kind"], "run": row["run"], "stats": stats, "rates": rates,
+                        "dir": run_dir})
+    return out
+
+
+def probation_outcomes(stats, rates, config: dict) -> list[str]:
+    """A probation started at every recorded frame (as if a global fix had been found there), fed through
+    the monitor with ``config``: ``"accept"`` or ``"alert"`` each (end of the record: left out)."""
+    from scenesig.localiser.integrity import IntegrityMonitor
+
+    res = []
+    for i in range(len(stats)):
+        mon = IntegrityMonitor(config, "signatures", firing=rates)
+        mon.begin_probation(stats[i].t)
+        for f in stats[i:]:
+            v = mon.assess(f)
+            if v in ("accept", "alert"):
+                res.append(v)
+                break
+    return res
+
+
+def tracking_alerts(stats, rates, config: dict) -> int:
+    """Alerts the monitor raises on a stream tracked from its first frame (trusted, as after a fix)."""
+    from scenesig.localiser.integrity import IntegrityMonitor
+
+    mon = IntegrityMonitor(config, "signatures", firing=rates)
+    for f in stats:
+        mon.assess(f)
+        if mon.state == "alerted":       # count it, then trust again (the localiser would relocalise)
+            mon.state = "trusted"
+    return len(mon.alerts)

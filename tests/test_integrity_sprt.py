@@ -1,0 +1,131 @@
+"""The integrity monitor's sequential test (Wald's SPRT in probation, Page's CUSUM while tracking) on
+synthetic Bernoulli streams, the firing-rate file beside a map, and the integrity bench's plumbing."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from scenesig.localiser.integrity import FrameStats, IntegrityMonitor
+
+OWN, OTHER = 0.6, 0.1          # a place's firing rates: on its own place, elsewhere
+SEARCHED = 40                  # signatures searched per frame
+#: independent firings (dispersion 1): the setting in which Wald's bounds hold as stated
+DESIGN = {"sprt_alpha": 0.01, "sprt_beta": 0.01, "sprt_own_fraction": 0.5, "sprt_dispersion": 1.0,
+          "cusum_h": 8.0}
+
+
+def _p1():
+    return OTHER + DESIGN["sprt_own_fraction"] * (OWN - OTHER)
+
+
+def _frame(rng, t, place, rate):
+    k = int(rng.binomial(SEARCHED, rate))
+    # residual and innovation unknown (NaN): only the sequential test speaks
+    return FrameStats(t, place, k, k, SEARCHED, True, np.nan, 1.0, np.nan, np.nan)
+
+
+def _probation(rng, rate, rates):
+    m = IntegrityMonitor(DESIGN, firing=rates)
+    m.begin_probation(0.0)
+    for i in range(200):
+        v = m.assess(_frame(rng, 0.2 * i, 3 + i // 4, rate))
+        if v in ("accept", "alert"):
+            return v, i + 1
+    return "undecided", 200
+
+
+def test_sprt_error_rates_are_within_the_design():
+    rng = np.random.default_rng(0)
+    rates = {p: (OWN, OTHER) for p in range(200)}
+    n = 1500
+    right = [_probation(rng, _p1(), rates) for _ in range(n)]
+    wrong = [_probation(rng, OTHER, rates) for _ in range(n)]
+    false_alarm = np.mean([v != "accept" for v, _ in right])
+    missed = np.mean([v == "accept" for v, _ in wrong])
+    # Wald: the realised rates are at most alpha / (1 - beta) and beta / (1 - alpha) (plus sampling noise:
+    # 3 binomial standard deviations at n = 1500)
+    a, b = DESIGN["sprt_alpha"], DESIGN["sprt_beta"]
+    assert missed <= a / (1 - b) + 3 * np.sqrt(a / n)
+    assert false_alarm <= b / (1 - a) + 3 * np.sqrt(b / n)
+    # and it decides: right fixes are accepted after the minimum probation, wrong ones refused quickly
+    assert np.median([k for v, k in right]) <= 8 and np.median([k for v, k in wrong]) <= 4
+
+
+def test_sprt_at_the_midpoint_rate_is_undecided_and_alerts():
+    rng = np.random.default_rng(1)
+    rates = {p: (OWN, OTHER) for p in range(200)}
+    out = [_probation(rng, 0.5 * (OTHER + _p1()), rates)[0] for _ in range(200)]
+    assert set(out) <= {"accept", "alert"}     # probation_max_frames ends every probation
+
+
+def test_cusum_rarely_alerts_on_the_right_map_and_quickly_on_another():
+    rng = np.random.default_rng(2)
+    rates = {p: (OWN, OTHER) for p in range(1000)}
+    runs = 200
+    alerted = 0
+    for _ in range(runs):
+        m = IntegrityMonitor(DESIGN, firing=rates)
+        for i in range(150):
+            m.assess(_frame(rng, 0.2 * i, i // 5, _p1()))
+        alerted += bool(m.alerts)
+    # ARL under H1 of Page's test is at least e^h frames: 150 frames alert with probability <= 150 e^-h
+    assert alerted / runs <= 150 * np.exp(-DESIGN["cusum_h"]) + 3 * np.sqrt(0.05 / runs)
+    m = IntegrityMonitor(DESIGN, firing=rates)
+    for i in range(20):
+        m.assess(_frame(rng, 0.2 * i, 0, _p1()))
+    assert not m.alerts
+    verdicts = [m.assess(_frame(rng, 4 + 0.2 * i, 1, OTHER)) for i in range(10)]
+    assert "alert" in verdicts[:6] and "sequential test" in m.alerts[0].reason
+
+
+def test_without_firing_rates_the_thresholds_decide():
+    m = IntegrityMonitor(DESIGN, firing=None)
+    assert m.rates is None and m.frame_llr(FrameStats(0, 1, 5, 5, 40, True, 1, 4, 1, 0.1)) == 0.0
+    m = IntegrityMonitor({**DESIGN, "sprt": False}, firing={1: (OWN, OTHER)})
+    assert m.rates is None
+    with pytest.raises(ValueError, match="sprt_alpha"):
+        IntegrityMonitor({"sprt_alpha": 0.7}, firing={1: (OWN, OTHER)})
+
+
+def test_firing_file_belongs_to_one_map_state(tmp_path, caplog):
+    from scenesig.localiser import firing
+
+    class Store:
+        root = tmp_path
+        map_id = "a"
+        generation = 0
+
+    assert firing.load(Store) is None                                    # an old map: none
+    doc = {"version": firing.VERSION, "map_id": "a", "generation": 0, "settings": {},
+           "places": {"2": {"own": 0.5, "other": 0.1}}}
+    (tmp_path / firing.FILE).write_text(json.dumps(doc))
+    assert firing.load(Store) == {2: (0.5, 0.1)}
+    Store.generation = 1                                                  # updated since: stale
+    assert firing.load(Store) is None and "another map state" in caplog.text
+    (tmp_path / firing.FILE).write_text("{")
+    from scenesig.surveys.errors import DataError
+
+    with pytest.raises(DataError, match="firing"):
+        firing.load(Store)
+
+
+def test_bench_seeds_and_summary():
+    from scenesig.benchmarks.integrity import parse_seeds, summarise
+
+    assert parse_seeds("3-5,9") == [3, 4, 5, 9]
+    for bad in ("5", "x-3", "5-3"):
+        with pytest.raises(ValueError):
+            parse_seeds(bad)
+    runs = [{"kind": "wrong", "localisations": 0, "integrity_alerts": 2, "false_fixes": 0, "failures": 0,
+             "bound_coverage_95": None, "lateral_bound_95_m": None},
+            {"kind": "wrong", "localisations": 4, "integrity_alerts": 1, "false_fixes": 4, "failures": 0,
+             "bound_coverage_95": None, "lateral_bound_95_m": None},
+            {"kind": "right", "localisations": 90, "integrity_alerts": 0, "false_fixes": 0, "failures": 0,
+             "bound_coverage_95": 0.95, "lateral_bound_95_m": 0.5},
+            {"kind": "right", "localisations": 80, "integrity_alerts": 1, "false_fixes": 0, "failures": 0,
+             "bound_coverage_95": 0.85, "lateral_bound_95_m": 0.7}]
+    s = summarise([{"seed": 1, "runs": runs}])
+    assert s["wrong_runs_zero_accepted_rate"] == 0.5 and s["wrong_run_max_accepted"] == 4
+    assert s["right_runs_with_alert_rate"] == 0.5 and s["right_runs_coverage_ok_rate"] == 0.5
