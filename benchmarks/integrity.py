@@ -110,7 +110,6 @@ def build_world_map(layout: Layout, seed: int) -> Path:
     """The map of the six training runs, with its firing rates (``build_map`` resumes an interrupted build
     itself)."""
     from scenesig.api import build_map
-
     from scenesig.localiser import firing
     from scenesig.surveys.run import read_run
 
@@ -282,6 +281,11 @@ def main(argv=None) -> int:
     p.add_argument("--jobs", type=int, default=1, help="worlds processed in parallel")
     p.add_argument("--cache", default="/work/cache/integrity", help="where worlds, maps and localisations are kept")
     p.add_argument("--prepare-only", action="store_true", help="simulate and build only")
+    p.add_argument("--choose", action="store_true",
+                   help="with --calibrate: choose the monitor's settings and the bound inflation from the recorded "
+                        "statistics (the design error rates: --alpha, --beta)")
+    p.add_argument("--alpha", type=float, default=0.01, help="designed P(wrong map's fix accepted) per probation")
+    p.add_argument("--beta", type=float, default=0.01, help="designed P(right map's fix refused) per probation")
     p.add_argument("--json", default=None, help="also write the JSON here")
     a = p.parse_args(argv)
     try:
@@ -290,8 +294,15 @@ def main(argv=None) -> int:
         p.error(str(exc))
     if a.every < 1 or a.jobs < 1 or a.camera_hz <= 0:
         p.error("--every and --jobs must be >= 1, --camera-hz positive")
+    if a.choose and not a.calibrate:
+        p.error("--choose needs --calibrate")
     result = run_bench(seeds, "calibrate" if a.calibrate else "evaluate", a.cache, a.preset, a.camera_hz, a.every,
                        a.jobs, a.prepare_only)
+    if a.choose and result["worlds"]:
+        layout = Layout(a.cache, a.preset, a.camera_hz)
+        done = [w["seed"] for w in result["worlds"]]
+        result["choice"] = choose(recorded_streams(layout, done), a.alpha, a.beta)
+        result["choice"]["inflation"] = inflation(layout, done)
     emit_json(result, a.json)
     return 0
 
@@ -351,3 +362,115 @@ def tracking_alerts(stats, rates, config: dict) -> int:
         if mon.state == "alerted":       # count it, then trust again (the localiser would relocalise)
             mon.state = "trusted"
     return len(mon.alerts)
+
+
+def _windows(stats, n: int):
+    """(residual, mean NIS) of every window of ``n`` successive solved frames."""
+    solved = [f for f in stats if f.solved]
+    out = []
+    for i in range(len(solved) - n + 1):
+        w = solved[i:i + n]
+        r2 = np.array([f.residual_chi2 for f in w])
+        dof = np.array([f.residual_dof for f in w])
+        ok = np.isfinite(r2)
+        nis = np.array([f.nis for f in w])
+        out.append((float(r2[ok].sum() / dof[ok].sum()) if ok.any() else np.nan,
+                    float(np.nanmean(nis)) if np.isfinite(nis).any() else np.nan))
+    return np.array(out).reshape(-1, 2)
+
+
+def _ceil(x: float, step: float) -> float:
+    return float(np.ceil(x / step - 1e-9) * step)
+
+
+def choose(streams: list[dict], alpha: float, beta: float) -> dict:
+    """The monitor's settings from calibration streams (each rule in ``docs/integrity.md``):
+
+    * ``max_residual``, ``max_nis``: 1.1 x the largest window value on the right maps' runs;
+    * ``sprt_own_fraction`` (γ) and ``sprt_dispersion`` (φ): over a grid, the pairs whose probations
+      (one started at every recorded frame) meet the design -- right-map probations refused at most
+      ``beta``, wrong-map probations accepted at most ``alpha`` -- and of those the one with the fewest
+      frames to accept on the right maps (then the larger φ);
+    * ``cusum_h``: the smallest of a grid with which at most 5 % of the right maps' runs, tracked from
+      their first frame, raise an alert.
+    """
+    from scenesig.localiser.integrity import default_config
+
+    right = [s for s in streams if s["kind"] == "right"]
+    wrong = [s for s in streams if s["kind"] == "wrong"]
+    n = int(default_config["window"])
+    win = np.concatenate([_windows(s["stats"], n) for s in right]) if right else np.zeros((0, 2))
+    chosen = {"max_residual": _ceil(1.1 * np.nanmax(win[:, 0]), 0.1),
+              "max_nis": _ceil(1.1 * np.nanmax(win[:, 1]), 1.0)}
+    base = {**chosen, "sprt_alpha": alpha, "sprt_beta": beta}
+    grid = []
+    for gamma in (0.2, 0.3, 0.4, 0.5, 0.6):
+        for phi in (1.0, 2.0, 4.0, 8.0):
+            cfg = {**base, "sprt_own_fraction": gamma, "sprt_dispersion": phi}
+            r = [v for s in right for v in probation_outcomes(s["stats"], s["rates"], cfg)]
+            w = [v for s in wrong for v in probation_outcomes(s["stats"], s["rates"], cfg)]
+            lengths = [_probation_length(s["stats"], s["rates"], cfg) for s in right]
+            grid.append({"sprt_own_fraction": gamma, "sprt_dispersion": phi,
+                         "false_alarm": float(np.mean([v == "alert" for v in r])) if r else None,
+                         "missed": float(np.mean([v == "accept" for v in w])) if w else None,
+                         "right_probations": len(r), "wrong_probations": len(w),
+                         "frames_to_accept_mean": float(np.nanmean(lengths)) if lengths else None})
+    ok = [g for g in grid if g["false_alarm"] is not None and g["missed"] is not None
+          and g["false_alarm"] <= beta and g["missed"] <= alpha]
+    if not ok:       # nothing meets the design: the pair closest to it (the larger of the two excesses)
+        ok = sorted(grid, key=lambda g: max(g["false_alarm"] / beta, g["missed"] / alpha))[:1]
+    best = sorted(ok, key=lambda g: (g["frames_to_accept_mean"], -g["sprt_dispersion"]))[0]
+    chosen.update({"sprt_own_fraction": best["sprt_own_fraction"], "sprt_dispersion": best["sprt_dispersion"]})
+    cusum = []
+    for h in (4.0, 6.0, 8.0, 10.0, 12.0, 16.0):
+        cfg = {**base, **chosen, "cusum_h": h}
+        cusum.append({"cusum_h": h,
+                      "right_runs_with_alert": float(np.mean([tracking_alerts(s["stats"], s["rates"], cfg) > 0
+                                                              for s in right])),
+                      "wrong_runs_with_alert": float(np.mean([tracking_alerts(s["stats"], s["rates"], cfg) > 0
+                                                              for s in wrong]))})
+    fine = [c for c in cusum if c["right_runs_with_alert"] <= 0.05]
+    chosen["cusum_h"] = (fine[0] if fine else cusum[-1])["cusum_h"]
+    return {"chosen": chosen, "sprt_grid": grid, "cusum_grid": cusum,
+            "right_windows": int(len(win)), "right_runs": len(right), "wrong_runs": len(wrong)}
+
+
+def _probation_length(stats, rates, config) -> float:
+    """Mean frames a probation started at each recorded frame takes to be accepted (NaN if none is)."""
+    from scenesig.localiser.integrity import IntegrityMonitor
+
+    lengths = []
+    for i in range(len(stats)):
+        mon = IntegrityMonitor(config, "signatures", firing=rates)
+        mon.begin_probation(stats[i].t)
+        for k, f in enumerate(stats[i:]):
+            v = mon.assess(f)
+            if v == "accept":
+                lengths.append(k + 1)
+            if v in ("accept", "alert"):
+                break
+    return float(np.mean(lengths)) if lengths else np.nan
+
+
+def inflation(layout: Layout, seeds, target: float = COVERAGE_OK, share: float = 0.975) -> dict:
+    """The bound inflation ``k``: the smallest multiple of 0.05 with which at least ``share`` of the
+    calibration right-map runs have ``bound_coverage_95`` >= ``target`` (each run's needed factor is the
+    ``target`` quantile of |error| / raw bound over its localised frames)."""
+    from scenesig.benchmarks.uncertainty import _errors, _raw
+
+    need = {}
+    for seed in seeds:
+        folder = layout.world(seed) / "loc-calibrate"
+        for run_dir in sorted(folder.glob("run*")):
+            if not (run_dir / "metrics.json").exists():
+                continue
+            metrics, err, bound, loc = _errors(run_dir)
+            raw = _raw(metrics, bound)
+            ok = np.isfinite(err) & np.isfinite(raw) & (raw > 0) & loc
+            if ok.sum() >= 10:
+                need[f"{seed}/{run_dir.name}"] = float(np.quantile(err[ok] / raw[ok], target))
+    if not need:
+        return {"k": None, "needed": {}}
+    v = np.sort(list(need.values()))
+    k = _ceil(float(np.quantile(v, share, method="higher")), 0.05)
+    return {"k": k, "needed": need, "rule": f"smallest 0.05 step covering {share:.1%} of runs at {target}"}
