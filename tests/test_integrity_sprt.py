@@ -129,3 +129,55 @@ def test_bench_seeds_and_summary():
     s = summarise([{"seed": 1, "runs": runs}])
     assert s["wrong_runs_zero_accepted_rate"] == 0.5 and s["wrong_run_max_accepted"] == 4
     assert s["right_runs_with_alert_rate"] == 0.5 and s["right_runs_coverage_ok_rate"] == 0.5
+
+
+def test_choose_meets_the_design_on_synthetic_streams():
+    from scenesig.benchmarks.integrity import choose
+
+    rng = np.random.default_rng(3)
+    rates = {p: (OWN, OTHER) for p in range(100)}
+
+    def stream(rate, residual):
+        return [FrameStats(0.2 * i, i // 5, k, k, SEARCHED, True, residual * (2 * k - 6), max(2 * k - 6, 1),
+                           3.0, 0.1) for i, k in enumerate(rng.binomial(SEARCHED, rate, 80))]
+
+    streams = ([{"kind": "right", "stats": stream(0.45, 1.0), "rates": rates} for _ in range(3)]
+               + [{"kind": "wrong", "stats": stream(0.08, 1.5), "rates": rates} for _ in range(3)])
+    out = choose(streams, alpha=0.01, beta=0.01)
+    c = out["chosen"]
+    assert c["max_residual"] >= 1.1 and c["max_nis"] >= 3.3
+    row = next(g for g in out["sprt_grid"] if g["sprt_own_fraction"] == c["sprt_own_fraction"]
+               and g["sprt_dispersion"] == c["sprt_dispersion"])
+    assert row["false_alarm"] <= 0.01 and row["missed"] <= 0.01
+    cus = next(g for g in out["cusum_grid"] if g["cusum_h"] == c["cusum_h"])
+    assert cus["right_runs_with_alert"] <= 0.05 and cus["wrong_runs_with_alert"] == 1.0
+
+
+@pytest.mark.heavy
+def test_bench_runs_end_to_end_on_the_tiny_preset(tmp_path):
+    """Two tiny worlds: simulated, built (with firing rates), localised right and wrong; the JSON's shape."""
+    from scenesig.benchmarks.integrity import main
+
+    out = tmp_path / "r.json"
+    assert main(["--seeds", "7-8", "--evaluate", "--preset", "tiny", "--camera-hz", "4", "--cache",
+                 str(tmp_path / "cache"), "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert [w["seed"] for w in doc["worlds"]] == [7, 8] and not doc["failed_worlds"]
+    kinds = [r["kind"] for r in doc["worlds"][0]["runs"]]
+    assert kinds.count("right") == 5 and kinds.count("wrong") == 2
+    for r in doc["worlds"][0]["runs"]:
+        assert {"localisations", "false_fixes", "integrity_alerts", "bound_coverage_95", "lateral_bound_95_m",
+                "failures", "condition"} <= set(r)
+    s = doc["summary"]
+    for key in ("wrong_runs_zero_accepted_rate", "wrong_run_max_accepted", "right_runs_with_alert_rate",
+                "right_runs_coverage_ok_rate"):
+        assert key in s
+    assert (tmp_path / "cache" / "tiny-4hz" / "seed7" / "map" / "firing.json").exists()
+    # the wrong-world runs are stripped copies: no metadata, no name, no condition to read
+    toml = (tmp_path / "cache" / "tiny-4hz" / "seed7" / "wrong" / "drive1" / "run.toml").read_text()
+    assert "[metadata]" not in toml and 'name = "drive1"' in toml and "unknown" in toml
+    # a rerun resumes from the cache: the same rows, nothing recomputed
+    out2 = tmp_path / "r2.json"
+    assert main(["--seeds", "7-8", "--evaluate", "--preset", "tiny", "--camera-hz", "4", "--cache",
+                 str(tmp_path / "cache"), "--json", str(out2)]) == 0
+    assert json.loads(out2.read_text())["worlds"] == doc["worlds"]
