@@ -66,7 +66,9 @@ default_config = {
     "sprt": True,
     "sprt_alpha": 0.01,            # designed P(a fix on a map that does not explain the run is accepted)
     "sprt_beta": 0.01,             # designed P(a right map's fix is refused in probation)
-    "sprt_own_fraction": 0.5,      # H1's rate: other + this x (own - other) (unseen conditions fire less)
+    "sprt_other_factor": 1.0,      # H0's rate: this x other (a tracked false fix draws its windows onto
+                                   # chance firings, which a fixed prior at build time does not)
+    "sprt_own_fraction": 0.5,      # H1's rate: H0's + this x (own - H0's) (unseen conditions fire less)
     "sprt_dispersion": 4.0,        # the log-likelihood ratio is divided by this (signatures fire together)
     "cusum_h": 8.0,                # tracking alert when Page's CUSUM of -LLR reaches this (ARL >= e^h frames)
     "probation_max_frames": 30,    # a probation the test has not decided by then ends with an alert
@@ -220,16 +222,19 @@ class IntegrityMonitor:
 
     def frame_llr(self, f: FrameStats) -> float:
         """log P(frame | the map explains it) / P(frame | it does not): the frame's ``inliers`` of ``searched``
-        signatures as Bernoulli draws at the place's rates (H1: ``other + γ (own - other)``, H0: ``other``),
+        signatures as Bernoulli draws at the place's rates (H0: ``κ other``, H1: ``κ other + γ (own - κ other)``),
         divided by the dispersion (signatures of one frame fire together, not independently).  0 where the
         place has no rates or nothing was searched."""
         if self.rates is None or f.searched <= 0 or f.place not in self.rates:
             return 0.0
         own, other = self.rates[f.place]
         cfg = self.config
-        p0 = float(np.clip(other, 1e-3, 0.5))
+        p0 = float(np.clip(cfg["sprt_other_factor"] * other, 1e-3, 0.5))
         p1 = float(np.clip(p0 + cfg["sprt_own_fraction"] * (own - p0), p0 + 1e-3, 0.999))
-        k, n = min(int(f.inliers), int(f.searched)), int(f.searched)
+        # a frame the solver did not run on (too few detections for eq. 10: a weak place) counts its
+        # detections -- the signatures that fired in their windows -- instead of inliers it cannot have
+        fired = f.inliers if f.solved else f.detections
+        k, n = min(int(fired), int(f.searched)), int(f.searched)
         return float((k * np.log(p1 / p0) + (n - k) * np.log((1 - p1) / (1 - p0))) / cfg["sprt_dispersion"])
 
     # -------------------------------------------------------------------------- decisions
@@ -278,7 +283,8 @@ class IntegrityMonitor:
             self._probation.append(stats)
             solved = [f for f in self._probation if f.solved]
             misses = len(self._probation) - len(solved)
-            if misses > cfg["probation_misses"]:
+            # with firing rates, frames without a pose are evidence for the sequential test (their detections)
+            if misses > cfg["probation_misses"] and self.rates is None:
                 return self._alert(stats, [f"{misses} of {len(self._probation)} tracked frames found no pose"],
                                    len(self._probation))
             why = self.failing(solved[-int(cfg["window"]):])        # residuals, innovations: as tracking
