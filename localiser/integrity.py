@@ -175,8 +175,7 @@ class IntegrityMonitor:
         # Wald's bounds (1945): accept H1 (the map explains the run) at log((1-β)/α), H0 at log(β/(1-α))
         self.upper = float(np.log((1 - b) / a))
         self.lower = float(np.log(b / (1 - a)))
-        self._llr = 0.0          # the running SPRT statistic (probation, or recovery after an alert)
-        self._cusum = 0.0        # Page's CUSUM of -LLR while tracking
+        self._reset_evidence()   # the SPRT statistic (probation, recovery) and the CUSUM (tracking)
         self.state = "trusted"
         self.alerts: list[Alert] = []
         self.history: list[FrameStats] = []
@@ -222,20 +221,56 @@ class IntegrityMonitor:
 
     def frame_llr(self, f: FrameStats) -> float:
         """log P(frame | the map explains it) / P(frame | it does not): the frame's ``inliers`` of ``searched``
-        signatures as Bernoulli draws at the place's rates (H0: ``κ other``, H1: ``κ other + γ (own - κ other)``),
-        divided by the dispersion (signatures of one frame fire together, not independently).  0 where the
-        place has no rates or nothing was searched."""
-        if self.rates is None or f.searched <= 0 or f.place not in self.rates:
+        signatures as Bernoulli draws at the place's rates (H0: ``κ other``, H1: ``κ other + γ (own - κ
+        other)``), divided by the dispersion φ.  0 where the place has no rates or nothing was searched."""
+        fired = f.inliers if f.solved else f.detections
+        return self._llr_of(f.place, float(fired), float(f.searched))
+
+    def _llr_of(self, place: int, k: float, n: float) -> float:
+        if self.rates is None or n <= 0 or place not in self.rates:
             return 0.0
-        own, other = self.rates[f.place]
+        own, other = self.rates[place]
         cfg = self.config
         p0 = float(np.clip(cfg["sprt_other_factor"] * other, 1e-3, 0.5))
         p1 = float(np.clip(p0 + cfg["sprt_own_fraction"] * (own - p0), p0 + 1e-3, 0.999))
-        # a frame the solver did not run on (too few detections for eq. 10: a weak place) counts its
-        # detections -- the signatures that fired in their windows -- instead of inliers it cannot have
-        fired = f.inliers if f.solved else f.detections
-        k, n = min(int(fired), int(f.searched)), int(f.searched)
+        k = min(k, n)
         return float((k * np.log(p1 / p0) + (n - k) * np.log((1 - p1) / (1 - p0))) / cfg["sprt_dispersion"])
+
+    def _observe(self, f: FrameStats) -> None:
+        """Add a frame to the evidence.  The Bernoulli draws are the place's signatures, not the frames: a
+        vehicle standing at a crossing sees the same image for seconds, and successive frames of one place
+        run the same classifiers on nearly the same view.  So each place counts once, with the mean share of
+        its signatures that fired over the frames seen there (a frame the solver did not run on -- too few
+        detections for eq. 10 -- counts its detections, the signatures that fired in their windows)."""
+        if f.searched <= 0:
+            return
+        if f.place != self._ev_place:
+            place_llr = self._current_llr()
+            self._llr_committed += place_llr
+            self._cusum_committed = max(0.0, self._cusum_committed - place_llr)
+            self._ev_place, self._ev_k, self._ev_n, self._ev_frames = f.place, 0.0, 0.0, 0
+        self._ev_k += float(f.inliers if f.solved else f.detections)
+        self._ev_n += float(f.searched)
+        self._ev_frames += 1
+
+    def _current_llr(self) -> float:
+        if not self._ev_frames:
+            return 0.0
+        return self._llr_of(self._ev_place, self._ev_k / self._ev_frames, self._ev_n / self._ev_frames)
+
+    def _reset_evidence(self) -> None:
+        self._llr_committed = self._cusum_committed = 0.0
+        self._ev_place, self._ev_k, self._ev_n, self._ev_frames = None, 0.0, 0.0, 0
+
+    @property
+    def _llr(self) -> float:
+        """The SPRT statistic: every place's evidence since the test began."""
+        return self._llr_committed + self._current_llr()
+
+    @property
+    def _cusum(self) -> float:
+        """Page's CUSUM of the evidence against the map, the current place included."""
+        return max(0.0, self._cusum_committed - self._current_llr())
 
     # -------------------------------------------------------------------------- decisions
     def searching(self, t: float, place: int, distance_m: float, verified: int) -> bool:
@@ -267,7 +302,7 @@ class IntegrityMonitor:
         self._probation = []
         self._probation_misses = 0
         self._window.clear()
-        self._llr = 0.0
+        self._reset_evidence()
 
     def assess(self, stats: FrameStats) -> str:
         """Decide on one tracked detector frame: ``"accept"`` (its fix may be used), ``"tentative"``
@@ -292,7 +327,7 @@ class IntegrityMonitor:
                     and len({f.place for f in solved}) >= cfg["probation_places"])
             support = self._support(self._probation)
             if self.rates is not None:                               # Wald's SPRT
-                self._llr += self.frame_llr(stats)
+                self._observe(stats)
                 if self._llr <= self.lower:
                     why.append(f"sequential test: {support:.0%} of the signatures searched confirmed over the "
                                f"{len(self._probation)} frames since the global fix, the firing rate of another "
@@ -310,26 +345,27 @@ class IntegrityMonitor:
                 self.state = "trusted"
                 self._search_from = None          # found: the next search starts afresh
                 self._window.extend(self._probation[-int(cfg["window"]):])
-                self._cusum = 0.0
+                self._reset_evidence()
                 return "accept"
             return "tentative"
         self._window.append(stats)
         why = self.failing(self._window) if len(self._window) >= cfg["window"] else []
-        llr = self.frame_llr(stats)
+        if self.rates is not None:
+            self._observe(stats)
         if self.state == "alerted":
             if self.rates is not None:            # recovery (with INS/GPS): the SPRT must accept again
-                self._llr = max(self._llr + llr, self.lower)
+                if self._llr <= self.lower:       # evidence against: the test starts again
+                    self._reset_evidence()
                 if self._llr < self.upper:
                     return "refuse"
             if not stats.solved or why or len(self._window) < cfg["window"]:
                 return "refuse"
             self.state = "trusted"
-            self._cusum = 0.0
+            self._reset_evidence()
             return "accept"
         if self.rates is not None:
-            # Page's CUSUM of the evidence against the map: resets while frames confirm it, alerts when
-            # the firing has looked like another place's for long enough (ARL under H1 >= e^h frames)
-            self._cusum = max(0.0, self._cusum - llr)
+            # Page's CUSUM of the evidence against the map: resets while places confirm it, alerts when
+            # the firing has looked like another place's for long enough (ARL under H1 >= e^h places)
             if self._cusum >= cfg["cusum_h"]:
                 why.append(f"sequential test: the signatures searched fire at another place's rate (CUSUM "
                            f"{self._cusum:.1f} >= {cfg['cusum_h']:g}; last {len(self._window)} frames: "
@@ -347,7 +383,7 @@ class IntegrityMonitor:
         self.state = "alerted"
         self._window.clear()
         self._probation = []
-        self._llr = self._cusum = 0.0
+        self._reset_evidence()
         a = Alert(stats.t, stats.place, "; ".join(why), int(frames))
         self.alerts.append(a)
         if not self._said:
