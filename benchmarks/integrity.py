@@ -424,9 +424,9 @@ def run_outcome(stats, rates, config: dict) -> tuple[int, int]:
 def choose(streams: list[dict], alpha: float, beta: float) -> dict:
     """The monitor's settings from calibration streams (each rule in ``docs/integrity.md``):
 
-    * ``max_residual``, ``max_nis``: 1.1 x the largest tracking-window value on the right maps' runs;
+    * ``sprt_max_residual``, ``sprt_max_nis``: 1.1 x the largest tracking-window value on the right maps' runs;
     * ``sprt_other_factor`` (κ), ``sprt_own_fraction`` (γ), ``sprt_dispersion`` (φ), ``cusum_h`` and the
-      probation's minimum (``probation_frames`` at ``probation_places``): over a grid, each stream
+      probation's minimum (``sprt_probation_frames`` at ``sprt_probation_places``): over a grid, each stream
       replayed through the monitor (:func:`run_outcome`); among the settings with which at least 95 % of
       the wrong-map runs accept no fix and none accepts more than 3 frames, the one with the fewest
       right-map runs alerting (then the fewest wrong-map frames accepted, the most right-map frames
@@ -440,18 +440,18 @@ def choose(streams: list[dict], alpha: float, beta: float) -> dict:
     wrong = [s for s in streams if s["kind"] == "wrong"]
     n = int(default_config["window"])
     win = np.concatenate([_windows(s["stats"], n) for s in right]) if right else np.zeros((0, 2))
-    chosen = {"max_residual": _ceil(1.1 * np.nanmax(win[:, 0]), 0.1),
-              "max_nis": _ceil(1.1 * np.nanmax(win[:, 1]), 1.0)}
+    chosen = {"sprt_max_residual": _ceil(1.1 * np.nanmax(win[:, 0]), 0.1),
+              "sprt_max_nis": _ceil(1.1 * np.nanmax(win[:, 1]), 1.0)}
     base = {**chosen, "sprt_alpha": alpha, "sprt_beta": beta}
     grid = []
     for kappa, gamma, phi, h, frames, places in itertools.product(
             (1.0, 2.0, 3.0, 4.0), (0.4, 0.6, 0.8), (1.0, 2.0, 4.0), (8.0, 16.0, 32.0), (6, 12), (2, 3)):
         cfg = {**base, "sprt_other_factor": kappa, "sprt_own_fraction": gamma, "sprt_dispersion": phi,
-               "cusum_h": h, "probation_frames": frames, "probation_places": places}
+               "cusum_h": h, "sprt_probation_frames": frames, "sprt_probation_places": places}
         r = [run_outcome(s["stats"], s["rates"], cfg) for s in right]
         w = [run_outcome(s["stats"], s["rates"], cfg) for s in wrong]
         grid.append({"sprt_other_factor": kappa, "sprt_own_fraction": gamma, "sprt_dispersion": phi, "cusum_h": h,
-                     "probation_frames": frames, "probation_places": places,
+                     "sprt_probation_frames": frames, "sprt_probation_places": places,
                      "right_runs_with_alert_rate": float(np.mean([a > 0 for _, a in r])),
                      "wrong_runs_zero_accepted_rate": float(np.mean([k == 0 for k, _ in w])),
                      "wrong_run_max_accepted": int(max(k for k, _ in w)), "wrong_accepted": int(sum(k for k, _ in w)),
@@ -464,7 +464,7 @@ def choose(streams: list[dict], alpha: float, beta: float) -> dict:
         best = min(grid, key=lambda g: (-g["wrong_runs_zero_accepted_rate"], g["right_runs_with_alert_rate"],
                                         g["wrong_accepted"]))
     chosen.update({k: best[k] for k in ("sprt_other_factor", "sprt_own_fraction", "sprt_dispersion", "cusum_h",
-                                         "probation_frames", "probation_places")})
+                                         "sprt_probation_frames", "sprt_probation_places")})
     cfg = {**base, **chosen}
     r = [v for s in right for v in probation_outcomes(s["stats"], s["rates"], cfg)]
     w = [v for s in wrong for v in probation_outcomes(s["stats"], s["rates"], cfg)]
@@ -495,7 +495,7 @@ def _probation_length(stats, rates, config) -> float:
     return float(np.mean(lengths)) if lengths else np.nan
 
 
-def inflation(layout: Layout, seeds, target: float = COVERAGE_OK, share: float = 0.975) -> dict:
+def inflation(layout: Layout, seeds, target: float = COVERAGE_OK, share: float = 0.95) -> dict:
     """The bound inflation ``k``: the smallest multiple of 0.05 with which at least ``share`` of the
     calibration right-map runs have ``bound_coverage_95`` >= ``target`` (each run's needed factor is the
     ``target`` quantile of |error| / raw bound over its localised frames)."""

@@ -12,8 +12,8 @@ from scenesig.localiser.integrity import FrameStats, IntegrityMonitor
 OWN, OTHER = 0.6, 0.1          # a place's firing rates: on its own place, elsewhere
 SEARCHED = 40                  # signatures searched per frame
 #: independent firings (dispersion 1): the setting in which Wald's bounds hold as stated
-DESIGN = {"sprt_alpha": 0.01, "sprt_beta": 0.01, "sprt_own_fraction": 0.5, "sprt_dispersion": 1.0,
-          "cusum_h": 8.0}
+DESIGN = {"sprt_alpha": 0.01, "sprt_beta": 0.01, "sprt_other_factor": 1.0, "sprt_own_fraction": 0.5,
+          "sprt_dispersion": 1.0, "cusum_h": 8.0, "sprt_probation_frames": 6, "sprt_probation_places": 2}
 
 
 def _p1():
@@ -161,7 +161,7 @@ def test_choose_meets_the_targets_on_synthetic_streams():
                + [{"kind": "wrong", "stats": stream(0.08, 1.5), "rates": rates} for _ in range(3)])
     out = choose(streams, alpha=0.01, beta=0.01)
     c, sel = out["chosen"], out["selected"]
-    assert c["max_residual"] >= 1.1 and c["max_nis"] >= 3.3
+    assert c["sprt_max_residual"] >= 1.1 and c["sprt_max_nis"] >= 3.3
     assert out["meets_wrong_target"] and sel["wrong_runs_zero_accepted_rate"] == 1.0
     assert sel["right_runs_with_alert_rate"] == 0.0 and sel["right_accepted"] > 150
     # the realised per-probation error rates are measured and reported beside the design
