@@ -186,6 +186,8 @@ def localise_one(layout: Layout, seed: int, run: Path, kind: str, condition: str
            "lateral_bound_95_m": metrics.get("lateral_bound_95_m_median"),
            "failures": int(metrics.get("failures", 0)),
            "detector_frames": int(metrics.get("detector_frames", 0)),
+           # global fixes put on probation and how they ended (the realised per-probation error rates)
+           "probations": dict(getattr(loc.result, "integrity_probations", {}) or {}),
            "seconds": round(time.perf_counter() - t0, 2)}
     if mode == "calibrate":
         stats = [asdict(s) for s in loc.result.integrity_stats]
@@ -214,6 +216,13 @@ def localise_world(layout: Layout, seed: int, partner: int, mode: str, every: in
     return {"seed": seed, "wrong_runs_from_seed": partner, "runs": rows}
 
 
+def _ratio(rows, outcome: str) -> dict:
+    """``outcome`` probations over the decided ones (accepted + refused) of ``rows``."""
+    n = sum(r.get("probations", {}).get(outcome, 0) for r in rows)
+    d = sum(r.get("probations", {}).get("accepted", 0) + r.get("probations", {}).get("refused", 0) for r in rows)
+    return {"rate": n / d if d else None, "of": int(d)}
+
+
 def summarise(worlds: list[dict]) -> dict:
     """The three target rates over every world's runs."""
     right = [r for w in worlds for r in w["runs"] if r["kind"] == "right"]
@@ -233,6 +242,9 @@ def summarise(worlds: list[dict]) -> dict:
         "right_runs_false_fixes": int(sum(r["false_fixes"] or 0 for r in right)),
         "right_runs_failures": int(sum(r["failures"] for r in right)),
         "right_runs_localised_zero": int(sum(r["localisations"] == 0 for r in right)),
+        # per probation: a right map's fix refused (false alarm), a wrong map's accepted (missed detection)
+        "probation_false_alarm_rate": _ratio(right, "refused"),
+        "probation_missed_detection_rate": _ratio(wrong, "accepted"),
         "runs_refused": [f'{w["seed"]}/{r["run"]}' for w in worlds for r in w["runs"] if r.get("refused")],
         "lateral_bound_95_m_median": _median([r["lateral_bound_95_m"] for r in right]),
         "targets": {"wrong_runs_zero_accepted_rate": ">= 0.95", "wrong_run_max_accepted": "<= 3",

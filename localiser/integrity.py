@@ -194,6 +194,8 @@ class IntegrityMonitor:
         self.upper = float(np.log((1 - b) / a))
         self.lower = float(np.log(b / (1 - a)))
         self._reset_evidence()   # the SPRT statistic (probation, recovery) and the CUSUM (tracking)
+        #: probations begun and how they ended (the realised error rates, docs/integrity.md)
+        self.probations = {"started": 0, "accepted": 0, "refused": 0}
         self.state = "trusted"
         self.alerts: list[Alert] = []
         self.history: list[FrameStats] = []
@@ -317,6 +319,7 @@ class IntegrityMonitor:
         if not self.active:
             return
         self.state = "probation"
+        self.probations["started"] += 1
         self._probation = []
         self._probation_misses = 0
         self._window.clear()
@@ -338,6 +341,7 @@ class IntegrityMonitor:
             misses = len(self._probation) - len(solved)
             # with firing rates, frames without a pose are evidence for the sequential test (their detections)
             if misses > cfg["probation_misses"] and self.rates is None:
+                self.probations["refused"] += 1
                 return self._alert(stats, [f"{misses} of {len(self._probation)} tracked frames found no pose"],
                                    len(self._probation))
             why = self.failing(solved[-int(cfg["window"]):])        # residuals, innovations: as tracking
@@ -358,8 +362,10 @@ class IntegrityMonitor:
                 why.append(f"{support:.0%} of the signatures searched confirmed over the {len(self._probation)} "
                            f"frames since the global fix (at least {cfg['probation_min_support']:.0%})")
             if why:
+                self.probations["refused"] += 1
                 return self._alert(stats, why, len(self._probation))
             if done:
+                self.probations["accepted"] += 1
                 self.state = "trusted"
                 self._search_from = None          # found: the next search starts afresh
                 self._window.extend(self._probation[-int(cfg["window"]):])
