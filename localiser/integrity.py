@@ -31,12 +31,18 @@ the residual and innovation tests, their support over the whole probation is at 
 ``probation_min_support`` and at most ``probation_misses`` frames failed to solve in between (a look-alike
 place on another map fires its own bank, but the next place's signatures hardly fire); only then is it
 accepted and the frames from then on are localised.  A global search that goes ``max_search_m`` without
-a confirmed fix raises an alert too (once per search).  A probation that fails raises an **alert**: the fix is discarded, the
-frames that tracked it lose their poses, and the localiser is lost again.  While tracking, a window whose
+a confirmed fix raises an alert too (once per search).  A probation that fails raises an **alert**: the fix is
+discarded, the frames that tracked it lose their poses, and the localiser is lost again.  While tracking, a window whose
 statistics fail raises an alert as well: no fix is accepted; without INS/GPS the localiser is lost
 (and must pass probation again), with INS/GPS it dead-reckons on its oracle until ``probation_frames``
 frames pass again.  The first alert is said once on stderr (what was seen, where); ``integrity_alerts``
 in ``metrics.json`` counts them, ``frames.csv``'s ``integrity_alert`` marks the refused frames.
+
+**The sequential test.**  Where the map carries its places' firing rates (:mod:`scenesig.localiser.firing`)
+the two support thresholds give way to Wald's sequential probability ratio test in probation (accept at
+``log((1-β)/α)``, alert at ``log(β/(1-α))``) and Page's CUSUM while tracking, on the evidence each place's
+signatures give (one Bernoulli draw per signature searched; a place counts once); maps without rates keep
+the thresholds.
 
 Thresholds and the data that chose them: ``docs/integrity.md``, "Integrity monitoring".
 """
@@ -60,7 +66,27 @@ log = logging.getLogger(__name__)
 default_config = {
     "enabled": True,
     "methods": ["signatures"],     # the methods whose statistics the thresholds were chosen for
-    # Every threshold was chosen on development runs that are not reported (docs/integrity.md,
+    # The sequential test (Wald's SPRT in probation, Page's CUSUM while tracking) on the map's firing rates
+    # (localiser.firing; docs/integrity.md, "The sequential test"): it replaces the two support thresholds
+    # on maps that have the rates; maps built before them keep the thresholds.
+    "sprt": True,
+    "sprt_alpha": 0.01,            # designed P(a fix on a map that does not explain the run is accepted)
+    "sprt_beta": 0.01,             # designed P(a right map's fix is refused in probation)
+    "sprt_other_factor": 3.0,      # H0's rate: this x other (a tracked false fix draws its windows onto
+                                   # chance firings, which a fixed prior at build time does not)
+    "sprt_own_fraction": 0.8,      # H1's rate: H0's + this x (own - H0's) (unseen conditions fire less)
+    "sprt_dispersion": 1.0,        # the log-likelihood ratio is divided by this (signatures fire together)
+    "cusum_h": 32.0,               # tracking alert when Page's CUSUM of -LLR reaches this (ARL >= e^h places)
+    # with the sequential test, the backstop tests and the probation's minimum chosen with it (on the
+    # calibration worlds, docs/integrity.md "Calibrated on many worlds"); the keys below without "sprt_"
+    # apply to maps without firing rates
+    "sprt_max_residual": 12.7,
+    "sprt_max_nis": 31.0,
+    "sprt_probation_frames": 12,
+    "sprt_probation_places": 3,
+    "probation_max_frames": 30,    # a probation the test has not decided by then ends with an alert
+    # Maps without firing rates (built before them): every threshold below was chosen on development runs
+    # that are not reported, for issue 25 (docs/integrity.md,
     # "Integrity monitoring"): the right map's largest / smallest value there, and another world's.
     "window": 4,                   # detector frames in the tracking window
     "max_residual": 2.5,           # windowed Σ c² / Σ dof of the solver's inliers (right map: at most 2.01)
@@ -115,7 +141,8 @@ def frame_stats(t: float, place: int, prior, m) -> FrameStats:
     dof = float(max(2 * int(m.inliers) - 6, 1))
     nis = inn = np.nan
     if c is not None:
-        nu = pose_log(invert(np.asarray(prior.T_world_vehicle, float)) @ np.asarray(c.T_world_vehicle_detections, float))
+        T_prior_inv = invert(np.asarray(prior.T_world_vehicle, float))
+        nu = pose_log(T_prior_inv @ np.asarray(c.T_world_vehicle_detections, float))
         L = 0.5 * (c.information_detections + c.information_detections.T)
         w, V = np.linalg.eigh(L)
         keep = w > 1e-9 * max(float(w.max()), 1e-300)
@@ -146,10 +173,29 @@ class IntegrityMonitor:
     history : every frame's :class:`FrameStats` (for the thresholds' calibration, ``docs/integrity.md``).
     """
 
-    def __init__(self, config: dict | None = None, method: str = "signatures", t0: float = 0.0):
+    def __init__(self, config: dict | None = None, method: str = "signatures", t0: float = 0.0,
+                 firing: dict | None = None):
         self.config = merge_settings(default_config, config, "integrity")
         self.t0 = float(t0)
         self.active = bool(self.config["enabled"]) and method in self.config["methods"]
+        cfg = self.config
+        #: per place (own, other) firing rates (localiser.firing) when the sequential test is on, else None
+        self.rates = dict(firing) if (self.active and cfg["sprt"] and firing) else None
+        if self.active and cfg["sprt"] and not firing:
+            log.info("the map has no firing rates (built before they existed): the integrity monitor uses its "
+                     "support thresholds instead of the sequential test")
+        #: the thresholds in force: the sequential test's set where the map has rates, else the fallback's
+        self.th = {k: cfg[("sprt_" if self.rates is not None else "") + k]
+                   for k in ("max_residual", "max_nis", "probation_frames", "probation_places")}
+        a, b = float(cfg["sprt_alpha"]), float(cfg["sprt_beta"])
+        if not (0 < a < 0.5 and 0 < b < 0.5):
+            raise ValueError(f"integrity: sprt_alpha and sprt_beta must be in (0, 0.5), got {a}, {b}")
+        # Wald's bounds (1945): accept H1 (the map explains the run) at log((1-β)/α), H0 at log(β/(1-α))
+        self.upper = float(np.log((1 - b) / a))
+        self.lower = float(np.log(b / (1 - a)))
+        self._reset_evidence()   # the SPRT statistic (probation, recovery) and the CUSUM (tracking)
+        #: probations begun and how they ended (the realised error rates, docs/integrity.md)
+        self.probations = {"started": 0, "accepted": 0, "refused": 0}
         self.state = "trusted"
         self.alerts: list[Alert] = []
         self.history: list[FrameStats] = []
@@ -175,23 +221,76 @@ class IntegrityMonitor:
         ok = np.isfinite(r2)
         if ok.any():
             res = float(r2[ok].sum() / dof[ok].sum())
-            if res > cfg["max_residual"]:
-                why.append(f"detection residuals {res:.2f} per degree of freedom (at most {cfg['max_residual']:g} "
-                           f"when the map explains the images)")
+            if res > self.th["max_residual"]:
+                why.append(f"detection residuals {res:.2f} per degree of freedom (at most "
+                           f"{self.th['max_residual']:g} when the map explains the images)")
         nis = np.array([f.nis for f in solved])
         if (~np.isnan(nis)).any():
             mean = float(np.mean(nis[~np.isnan(nis)]))
-            if mean > cfg["max_nis"]:
+            if mean > self.th["max_nis"]:
                 why.append(f"fixes disagree with the odometry: innovation χ² {mean:.1f} on 6 dof (at most "
-                           f"{cfg['max_nis']:g}), {np.nanmedian([f.innovation_m for f in solved]):.2f} m")
+                           f"{self.th['max_nis']:g}), {np.nanmedian([f.innovation_m for f in solved]):.2f} m")
         searched = sum(f.searched for f in frames)
         need = cfg["min_support"] if min_support is None else min_support
-        if searched:
+        if searched and self.rates is None:       # with firing rates the sequential test judges the support
             support = sum(f.inliers for f in frames) / searched
             if support < need:
                 why.append(f"{support:.0%} of the signatures searched confirmed over {len(frames)} frames "
                            f"(at least {need:.0%})")
         return why
+
+    def frame_llr(self, f: FrameStats) -> float:
+        """log P(frame | the map explains it) / P(frame | it does not): the frame's ``inliers`` of ``searched``
+        signatures as Bernoulli draws at the place's rates (H0: ``κ other``, H1: ``κ other + γ (own - κ
+        other)``), divided by the dispersion φ.  0 where the place has no rates or nothing was searched."""
+        fired = f.inliers if f.solved else f.detections
+        return self._llr_of(f.place, float(fired), float(f.searched))
+
+    def _llr_of(self, place: int, k: float, n: float) -> float:
+        if self.rates is None or n <= 0 or place not in self.rates:
+            return 0.0
+        own, other = self.rates[place]
+        cfg = self.config
+        p0 = float(np.clip(cfg["sprt_other_factor"] * other, 1e-3, 0.5))
+        p1 = float(np.clip(p0 + cfg["sprt_own_fraction"] * (own - p0), p0 + 1e-3, 0.999))
+        k = min(k, n)
+        return float((k * np.log(p1 / p0) + (n - k) * np.log((1 - p1) / (1 - p0))) / cfg["sprt_dispersion"])
+
+    def _observe(self, f: FrameStats) -> None:
+        """Add a frame to the evidence.  The Bernoulli draws are the place's signatures, not the frames: a
+        vehicle standing at a crossing sees the same image for seconds, and successive frames of one place
+        run the same classifiers on nearly the same view.  So each place counts once, with the mean share of
+        its signatures that fired over the frames seen there (a frame the solver did not run on -- too few
+        detections for eq. 10 -- counts its detections, the signatures that fired in their windows)."""
+        if f.searched <= 0:
+            return
+        if f.place != self._ev_place:
+            place_llr = self._current_llr()
+            self._llr_committed += place_llr
+            self._cusum_committed = max(0.0, self._cusum_committed - place_llr)
+            self._ev_place, self._ev_k, self._ev_n, self._ev_frames = f.place, 0.0, 0.0, 0
+        self._ev_k += float(f.inliers if f.solved else f.detections)
+        self._ev_n += float(f.searched)
+        self._ev_frames += 1
+
+    def _current_llr(self) -> float:
+        if not self._ev_frames:
+            return 0.0
+        return self._llr_of(self._ev_place, self._ev_k / self._ev_frames, self._ev_n / self._ev_frames)
+
+    def _reset_evidence(self) -> None:
+        self._llr_committed = self._cusum_committed = 0.0
+        self._ev_place, self._ev_k, self._ev_n, self._ev_frames = None, 0.0, 0.0, 0
+
+    @property
+    def _llr(self) -> float:
+        """The SPRT statistic: every place's evidence since the test began."""
+        return self._llr_committed + self._current_llr()
+
+    @property
+    def _cusum(self) -> float:
+        """Page's CUSUM of the evidence against the map, the current place included."""
+        return max(0.0, self._cusum_committed - self._current_llr())
 
     # -------------------------------------------------------------------------- decisions
     def searching(self, t: float, place: int, distance_m: float, verified: int) -> bool:
@@ -220,9 +319,11 @@ class IntegrityMonitor:
         if not self.active:
             return
         self.state = "probation"
+        self.probations["started"] += 1
         self._probation = []
         self._probation_misses = 0
         self._window.clear()
+        self._reset_evidence()
 
     def assess(self, stats: FrameStats) -> str:
         """Decide on one tracked detector frame: ``"accept"`` (its fix may be used), ``"tentative"``
@@ -238,31 +339,61 @@ class IntegrityMonitor:
             self._probation.append(stats)
             solved = [f for f in self._probation if f.solved]
             misses = len(self._probation) - len(solved)
-            if misses > cfg["probation_misses"]:
+            # with firing rates, frames without a pose are evidence for the sequential test (their detections)
+            if misses > cfg["probation_misses"] and self.rates is None:
+                self.probations["refused"] += 1
                 return self._alert(stats, [f"{misses} of {len(self._probation)} tracked frames found no pose"],
                                    len(self._probation))
             why = self.failing(solved[-int(cfg["window"]):])        # residuals, innovations: as tracking
-            done = (len(solved) >= cfg["probation_frames"]
-                    and len({f.place for f in solved}) >= cfg["probation_places"])
+            done = (len(solved) >= self.th["probation_frames"]
+                    and len({f.place for f in solved}) >= self.th["probation_places"])
             support = self._support(self._probation)
-            if done and support < cfg["probation_min_support"]:     # over the whole probation
+            if self.rates is not None:                               # Wald's SPRT
+                self._observe(stats)
+                if self._llr <= self.lower:
+                    why.append(f"sequential test: {support:.0%} of the signatures searched confirmed over the "
+                               f"{len(self._probation)} frames since the global fix, the firing rate of another "
+                               f"place (log-likelihood ratio {self._llr:.1f} <= {self.lower:.1f})")
+                elif len(self._probation) >= cfg["probation_max_frames"] and self._llr < self.upper:
+                    why.append(f"sequential test undecided after {len(self._probation)} frames (log-likelihood "
+                               f"ratio {self._llr:.1f}, {support:.0%} of the signatures searched confirmed)")
+                done = done and self._llr >= self.upper
+            elif done and support < cfg["probation_min_support"]:     # over the whole probation
                 why.append(f"{support:.0%} of the signatures searched confirmed over the {len(self._probation)} "
                            f"frames since the global fix (at least {cfg['probation_min_support']:.0%})")
             if why:
+                self.probations["refused"] += 1
                 return self._alert(stats, why, len(self._probation))
             if done:
+                self.probations["accepted"] += 1
                 self.state = "trusted"
                 self._search_from = None          # found: the next search starts afresh
                 self._window.extend(self._probation[-int(cfg["window"]):])
+                self._reset_evidence()
                 return "accept"
             return "tentative"
         self._window.append(stats)
         why = self.failing(self._window) if len(self._window) >= cfg["window"] else []
+        if self.rates is not None:
+            self._observe(stats)
         if self.state == "alerted":
+            if self.rates is not None:            # recovery (with INS/GPS): the SPRT must accept again
+                if self._llr <= self.lower:       # evidence against: the test starts again
+                    self._reset_evidence()
+                if self._llr < self.upper:
+                    return "refuse"
             if not stats.solved or why or len(self._window) < cfg["window"]:
                 return "refuse"
             self.state = "trusted"
+            self._reset_evidence()
             return "accept"
+        if self.rates is not None:
+            # Page's CUSUM of the evidence against the map: resets while places confirm it, alerts when
+            # the firing has looked like another place's for long enough (ARL under H1 >= e^h places)
+            if self._cusum >= cfg["cusum_h"]:
+                why.append(f"sequential test: the signatures searched fire at another place's rate (CUSUM "
+                           f"{self._cusum:.1f} >= {cfg['cusum_h']:g}; last {len(self._window)} frames: "
+                           f"{self._support(self._window):.0%} confirmed)")
         if why:
             return self._alert(stats, why, len(self._window))
         return "accept"
@@ -276,6 +407,7 @@ class IntegrityMonitor:
         self.state = "alerted"
         self._window.clear()
         self._probation = []
+        self._reset_evidence()
         a = Alert(stats.t, stats.place, "; ".join(why), int(frames))
         self.alerts.append(a)
         if not self._said:

@@ -134,6 +134,7 @@ class ReplayResult:
     integrity_alert: np.ndarray | None = None  # (N,) bool: the integrity monitor refused this frame's fix
     integrity_alerts: list = field(default_factory=list)  # localiser.integrity.Alert dicts
     integrity_stats: list = field(default_factory=list)   # localiser.integrity.FrameStats of every tracked frame
+    integrity_probations: dict = field(default_factory=dict)  # probations started, accepted, refused
     signature_inliers: np.ndarray | None = None  # (N,) the solver's inliers that are signature detections
     point_inliers: np.ndarray | None = None      # (N,) ... that are point-feature matches (hybrid: both)
 
@@ -623,7 +624,10 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
         reloc = Relocaliser(store, method, loc, cfg["relocalise"] or None, retrieval=retrieval)
     from .integrity import IntegrityMonitor
 
-    monitor = IntegrityMonitor(cfg["integrity"] or None, method.name, t0=float(run.odometry_times[0]))
+    from .firing import load as load_firing
+
+    monitor = IntegrityMonitor(cfg["integrity"] or None, method.name, t0=float(run.odometry_times[0]),
+                               firing=load_firing(store))
     rec = _Recorder(run)
     extra = {}
     wall0 = time.perf_counter()
@@ -671,6 +675,7 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
                         rec.covariances, _settings(resolved, None if realtime else every, realtime, speed, oracle),
                         camera_check=None, integrity_alert=rec.alert.copy(),
                         integrity_alerts=[a.as_dict() for a in monitor.alerts], integrity_stats=list(monitor.history),
+                        integrity_probations=dict(monitor.probations),
                         signature_inliers=rec.signature_inliers, point_inliers=rec.point_inliers)
 
 

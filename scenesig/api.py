@@ -58,6 +58,7 @@ def build_map(runs, reference, out, *, layers=None, jobs: int = 1, scheduler=Non
     config : build overrides (:data:`scenesig.mapping.build.default_config`), on top of ``preset``.
     preset : a settings preset (:data:`scenesig.presets.PRESETS`), default the project's defaults.
     """
+    from scenesig.localiser import firing
     from scenesig.mapping.build import build_map as _build_map
     from scenesig.surveys.run import SurveyRun, read_run
 
@@ -75,8 +76,11 @@ def build_map(runs, reference, out, *, layers=None, jobs: int = 1, scheduler=Non
 
         config = {**(config or {}), "layers": parse_layers(layers)}     # the keyword over config's
     cfg = apply_preset("build", config, preset)
-    return _build_map(loaded, ref, out, jobs=jobs, scheduler=scheduler, config=cfg, progress=progress,
-                      skip_corrupt=skip_corrupt)
+    summary = _build_map(loaded, ref, out, jobs=jobs, scheduler=scheduler, config=cfg, progress=progress,
+                         skip_corrupt=skip_corrupt)
+    # the places' firing rates, for the integrity monitor's sequential test (scenesig.localiser.firing)
+    firing.for_map(out, loaded + ([ref] if all(r is not ref for r in loaded) else []))
+    return summary
 
 
 class Localisation:

@@ -296,6 +296,32 @@ def test_aerial(tmp_path, capsys):
                     "--json", tmp_path / "a.json"], capsys, tmp_path / "a.json")
 
 
+def test_integrity(tmp_path, capsys, tiny_world):
+    """Two 'worlds' laid out in the bench's cache from the tiny world (its three runs under the bench's run
+    names, a copy of its map with firing rates): the evaluate path end to end, without simulating (the
+    full path, simulation and build included: tests/test_integrity_sprt.py, heavy)."""
+    from scenesig.benchmarks.integrity import LIVE, TRAINING, Layout
+    from scenesig.localiser import firing
+
+    runs, map_dir = tiny_world
+    layout = Layout(tmp_path / "cache", "tiny", 4.0)
+    base_map = tmp_path / "map"
+    shutil.copytree(map_dir, base_map)
+    firing.for_map(base_map, runs)
+    for seed in (1, 2):
+        layout.runs(seed).mkdir(parents=True)
+        (layout.runs(seed) / "simulate_summary.json").write_text("{}")
+        for i, name in enumerate(layout.run_names()):
+            (layout.runs(seed) / name).symlink_to(runs[i % len(runs)].root)
+        shutil.copytree(base_map, layout.map(seed))
+    assert len(layout.run_names()) == len(TRAINING) + len(LIVE)
+    doc = _run("integrity", ["--seeds", "1-2", "--evaluate", "--preset", "tiny", "--camera-hz", "4", "--cache",
+                             tmp_path / "cache", "--json", tmp_path / "i.json"], capsys, tmp_path / "i.json")
+    assert [w["seed"] for w in doc["worlds"]] == [1, 2] and len(doc["worlds"][0]["runs"]) == 7
+    assert {"wrong_runs_zero_accepted_rate", "wrong_run_max_accepted", "right_runs_with_alert_rate",
+            "right_runs_coverage_ok_rate"} <= set(doc["summary"])
+
+
 def test_every_benchmark_has_a_smoke_test():
     tested = {n[len("test_"):].replace("_", "-") for n in globals() if n.startswith("test_")}
     missing = [name for name in BENCHMARKS if name.replace("_", "-") not in tested]

@@ -6,7 +6,7 @@ import sys
 from ._types import positive_int
 
 #: the presets of :data:`scenesig.surveys.sim.world.PRESETS` (listed here so ``--help`` imports nothing heavy)
-PRESETS = ("tiny", "demo", "begbroke")
+PRESETS = ("tiny", "demo", "compact", "begbroke")
 
 
 def register(groups):

@@ -60,7 +60,10 @@ class StreetStyle:
                         rng.uniform(0, 4, 5)) for _ in range(n_c)]
 
     def section(self, s):
-        return np.floor((np.asarray(s) + 200) / self.section_len).astype(int)
+        # a bend's projective tile maps texels far off the road to arc lengths beyond the route's range
+        # (tight loops): they take the end sections (in-range values are unchanged)
+        sec = np.floor((np.asarray(s) + 200) / self.section_len).astype(int)
+        return np.clip(sec, 0, len(self.edge_line) - 1)
 
 
 def _sd_grid(s0, s1, D, ppm):

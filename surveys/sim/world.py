@@ -41,6 +41,11 @@ PRESETS = {
              "runs": ["sunny", "overcast", "night", "snow"]},
     "demo": {"route": "loop", "length": 300.0, "size": (640, 480), "min_radius": 20.0,
              "runs": ["sunny", "overcast", "dusk", "night", "rain", "fog", "snow", "autumn"]},
+    # the demo's character (loop, 640x480, the same conditions) on half its length: many cheap worlds for
+    # calibrating and evaluating the integrity monitor (``scenesig bench integrity``, docs/integrity.md)
+    "compact": {"route": "loop", "length": 180.0, "size": (640, 480), "min_radius": 20.0,
+                "runs": ["sunny", "overcast", "dusk", "night", "rain", "snow", "night", "fog", "snow", "autumn",
+                         "morning"]},
     "begbroke": {"route": "loop", "length": 650.0, "size": (640, 480), "min_radius": 28.0,
                  "runs": ["sunny", "overcast", "morning", "sunny", "dusk", "night", "rain", "fog", "snow",
                           "autumn", "overcast", "night"]},

@@ -1,0 +1,531 @@
+"""Integrity on many simulated worlds: ``scenesig bench integrity --seeds A-B (--calibrate | --evaluate)``.
+
+The integrity monitor (:mod:`scenesig.localiser.integrity`) must refuse another world's map and stay
+silent on the right one, on worlds nobody tuned it on.  For each seed this benchmark
+
+1. simulates a world (preset ``compact`` by default: the demo's loop, image size and conditions on a
+   shorter route) -- six training runs (sunny, overcast, dusk, night, rain, snow) and one live run in each
+   of night, fog, snow, autumn and morning;
+2. builds its map from the six training runs (default layers, reference the sunny run);
+3. localises, with ``--oracle none`` (no INS/GPS, as a deployed vehicle), the five live runs against
+   the map (``kind: right``) and two runs of *another* seed's world (the next seed of the list: its live
+   night and its sunny training run) against it (``kind: wrong``).  The wrong-world runs are copies
+   with ``run.toml``'s ``[metadata]`` removed, the name replaced (``drive1``, ``drive2``) and the
+   conditions set to ``unknown`` (files linked): the localiser sees images, odometry and the camera only.
+
+``--calibrate`` runs with the monitor's tests switched off, recording every detector frame's statistics
+(``integrity_stats.json`` beside each localisation) so thresholds can be chosen from them
+(:func:`scenesig.localiser.integrity` docs, ``docs/integrity.md``); ``--evaluate`` runs with the defaults.
+Everything is cached under ``--cache`` (default ``/work/cache/integrity``, outside the repository) per
+preset, camera rate and seed: simulated runs, maps, localisations; a rerun resumes where it stopped.
+
+JSON (stdout and ``--json``): ``worlds`` (per world: ``seed``, ``runs`` with ``kind``, ``condition``,
+``localisations``, ``false_fixes``, ``integrity_alerts``, ``bound_coverage_95``, ``lateral_bound_95_m``
+(the localised frames' median), ``failures``) and ``summary`` with the target rates
+(``wrong_runs_zero_accepted_rate``, ``wrong_run_max_accepted``, ``right_runs_with_alert_rate``,
+``right_runs_coverage_ok_rate``).  On a wrong-world run every accepted localisation is a false fix (the
+map is of another place), so ``false_fixes`` equals ``localisations`` there.
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+TRAINING = ["sunny", "overcast", "dusk", "night", "rain", "snow"]
+LIVE = ["night", "fog", "snow", "autumn", "morning"]
+#: the other world's runs localised against a map: (run index in its world, name of the stripped copy)
+WRONG = [(6, "drive1"), (0, "drive2")]        # its live night run, its sunny training run
+
+#: ``integrity`` overrides that switch every test off while the monitor still records its statistics
+#: (calibration: thresholds are chosen from what the right and the wrong map give, not from a verdict)
+TESTS_OFF = {"max_residual": 1e12, "max_nis": 1e12, "min_support": 0.0, "probation_min_support": 0.0,
+             "probation_misses": 10 ** 9, "max_search_m": 1e12, "sprt": False}
+
+#: a run with ``bound_coverage_95`` at least this counts as covered (the issue's target per run)
+COVERAGE_OK = 0.9
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"A-B"`` (inclusive), ``"A,B,C"`` or a mix (``"1-3,7"``) -> sorted distinct seeds."""
+    seeds: set[int] = set()
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        a, sep, b = part.partition("-")
+        try:
+            lo, hi = int(a), int(b) if sep else int(a)
+        except ValueError:
+            raise ValueError(f"--seeds: {part!r} is not a seed or a range A-B") from None
+        if hi < lo:
+            raise ValueError(f"--seeds: range {part!r} is empty")
+        seeds.update(range(lo, hi + 1))
+    if len(seeds) < 2:
+        raise ValueError("--seeds: at least two seeds are needed (wrong-world runs come from another seed)")
+    return sorted(seeds)
+
+
+class Layout:
+    """Where one configuration's worlds live in the cache (one folder per seed)."""
+
+    def __init__(self, cache, preset: str, camera_hz: float):
+        self.root = Path(cache) / f"{preset}-{camera_hz:g}hz"
+        self.preset = preset
+        self.camera_hz = float(camera_hz)
+
+    def world(self, seed: int) -> Path:
+        return self.root / f"seed{seed}"
+
+    def runs(self, seed: int) -> Path:
+        return self.world(seed) / "runs"
+
+    def map(self, seed: int) -> Path:
+        return self.world(seed) / "map"
+
+    def run_names(self) -> list[str]:
+        from scenesig.surveys.sim.simulate import run_names
+
+        return run_names(TRAINING + LIVE)
+
+
+def simulate_world(layout: Layout, seed: int) -> Path:
+    """The world's eleven runs (an interrupted call is redone; a finished one is kept)."""
+    from scenesig.surveys.sim.simulate import simulate
+
+    out = layout.runs(seed)
+    if not (out / "simulate_summary.json").exists():
+        simulate(out, preset=layout.preset, seed=seed, runs=TRAINING + LIVE, camera_hz=layout.camera_hz, jobs=1,
+                 overwrite=True)
+    return out
+
+
+def build_world_map(layout: Layout, seed: int) -> Path:
+    """The map of the six training runs, with its firing rates (``build_map`` resumes an interrupted build
+    itself)."""
+    from scenesig.api import build_map
+    from scenesig.localiser import firing
+    from scenesig.surveys.run import read_run
+
+    out = layout.map(seed)
+    runs = [layout.runs(seed) / n for n in layout.run_names()[:len(TRAINING)]]
+    if not (out / "manifest.json").exists():
+        build_map([str(r) for r in runs], str(runs[0]), str(out), jobs=1, progress=False)   # writes the rates too
+    if not (out / firing.FILE).exists():        # a map cached before the rates existed
+        firing.for_map(out, [read_run(r, check_images=False) for r in runs])
+    return out
+
+
+def stripped_copy(src: Path, dst: Path, name: str) -> Path:
+    """``src`` as a run the localiser cannot tell anything about but images, odometry and camera:
+    ``[metadata]`` removed, ``name`` and ``conditions`` replaced, every other file linked."""
+    import tomllib
+
+    from scenesig.surveys.io import atomic_write_text
+    from scenesig.surveys.run import dump_toml
+
+    if (dst / "run.toml").exists():
+        return dst
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in src.iterdir():
+        if f.name in ("run.toml", ".complete") or (dst / f.name).exists():
+            continue
+        os.symlink(f.resolve(), dst / f.name)
+    meta = tomllib.loads((src / "run.toml").read_text(encoding="utf-8"))
+    meta.pop("metadata", None)
+    meta["name"], meta["conditions"] = name, ["unknown"]
+    atomic_write_text(dst / "run.toml", dump_toml(meta))
+    return dst
+
+
+def _median(values) -> float | None:
+    v = np.asarray([x for x in values if x is not None and np.isfinite(x)], float)
+    return float(np.median(v)) if v.size else None
+
+
+def localise_one(layout: Layout, seed: int, run: Path, kind: str, condition: str, mode: str, every: int) -> dict:
+    """One localisation (cached in the world's ``loc-<mode>`` folder); the run's row of the JSON."""
+    from dataclasses import asdict
+
+    from scenesig.api import localise
+    from scenesig.surveys.io import atomic_write_text
+
+    out = layout.world(seed) / f"loc-{mode}" / run.name
+    row_path = out / "row.json"
+    if row_path.exists():
+        return json.loads(row_path.read_text())
+    from scenesig.surveys.errors import DataError
+
+    config = {"integrity": dict(TESTS_OFF)} if mode == "calibrate" else None
+    t0 = time.perf_counter()
+    try:
+        loc = localise(str(layout.map(seed)), str(run), oracle="none", every=every, config=config)
+    except (DataError, ValueError) as exc:
+        # refused before replaying (the camera check: a calibration its images seem to contradict) -- a
+        # right-map run refused is reported as such, not as a localisation
+        row = {"run": run.name, "kind": kind, "condition": condition, "refused": str(exc), "localisations": 0,
+               "false_fixes": 0, "integrity_alerts": 0, "bound_coverage_95": None, "lateral_bound_95_m": None,
+               "failures": 0, "detector_frames": 0, "seconds": round(time.perf_counter() - t0, 2)}
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(row_path, json.dumps(row, indent=1))
+        return row
+    metrics = loc.write(out, figure=False)
+    n = int(metrics["localisations"])
+    row = {"run": run.name, "kind": kind, "condition": condition, "localisations": n,
+           # another world's map: every accepted localisation is a false fix (its truth is of another place)
+           "false_fixes": n if kind == "wrong" else metrics.get("false_fixes"),
+           "integrity_alerts": int(metrics.get("integrity_alerts", 0)),
+           "bound_coverage_95": metrics.get("bound_coverage_95") if kind == "right" else None,
+           "lateral_bound_95_m": metrics.get("lateral_bound_95_m_median"),
+           "failures": int(metrics.get("failures", 0)),
+           "detector_frames": int(metrics.get("detector_frames", 0)),
+           # global fixes put on probation and how they ended (the realised per-probation error rates)
+           "probations": dict(getattr(loc.result, "integrity_probations", {}) or {}),
+           "seconds": round(time.perf_counter() - t0, 2)}
+    if mode == "calibrate":
+        stats = [asdict(s) for s in loc.result.integrity_stats]
+        atomic_write_text(out / "integrity_stats.json", json.dumps(stats))
+    atomic_write_text(row_path, json.dumps(row, indent=1))
+    return row
+
+
+def prepare_world(layout: Layout, seed: int) -> float:
+    t0 = time.perf_counter()
+    simulate_world(layout, seed)
+    build_world_map(layout, seed)
+    return time.perf_counter() - t0
+
+
+def localise_world(layout: Layout, seed: int, partner: int, mode: str, every: int) -> dict:
+    """Every run of one world's row list: the five live runs and the partner world's two runs."""
+    names = layout.run_names()
+    rows = []
+    for name, cond in zip(names[len(TRAINING):], LIVE):
+        rows.append(localise_one(layout, seed, layout.runs(seed) / name, "right", cond, mode, every))
+    for index, alias in WRONG:
+        src = layout.runs(partner) / names[index]
+        dst = stripped_copy(src, layout.world(seed) / "wrong" / alias, alias)
+        rows.append(localise_one(layout, seed, dst, "wrong", (TRAINING + LIVE)[index], mode, every))
+    return {"seed": seed, "wrong_runs_from_seed": partner, "runs": rows}
+
+
+def _ratio(rows, outcome: str) -> dict:
+    """``outcome`` probations over the decided ones (accepted + refused) of ``rows``."""
+    n = sum(r.get("probations", {}).get(outcome, 0) for r in rows)
+    d = sum(r.get("probations", {}).get("accepted", 0) + r.get("probations", {}).get("refused", 0) for r in rows)
+    return {"rate": n / d if d else None, "of": int(d)}
+
+
+def summarise(worlds: list[dict]) -> dict:
+    """The three target rates over every world's runs."""
+    right = [r for w in worlds for r in w["runs"] if r["kind"] == "right"]
+    wrong = [r for w in worlds for r in w["runs"] if r["kind"] == "wrong"]
+    cov = [r["bound_coverage_95"] for r in right]
+
+    def rate(x):
+        return float(np.mean(x)) if len(x) else None
+
+    return {
+        "worlds": len(worlds), "right_runs": len(right), "wrong_runs": len(wrong),
+        "wrong_runs_zero_accepted_rate": rate([r["localisations"] == 0 for r in wrong]),
+        "wrong_run_max_accepted": max((r["localisations"] for r in wrong), default=None),
+        "wrong_runs_with_alert_rate": rate([r["integrity_alerts"] > 0 for r in wrong]),
+        "right_runs_with_alert_rate": rate([r["integrity_alerts"] > 0 for r in right]),
+        "right_runs_coverage_ok_rate": rate([c is not None and c >= COVERAGE_OK for c in cov]),
+        "right_runs_false_fixes": int(sum(r["false_fixes"] or 0 for r in right)),
+        "right_runs_failures": int(sum(r["failures"] for r in right)),
+        "right_runs_localised_zero": int(sum(r["localisations"] == 0 for r in right)),
+        # per probation: a right map's fix refused (false alarm), a wrong map's accepted (missed detection)
+        "probation_false_alarm_rate": _ratio(right, "refused"),
+        "probation_missed_detection_rate": _ratio(wrong, "accepted"),
+        "runs_refused": [f'{w["seed"]}/{r["run"]}' for w in worlds for r in w["runs"] if r.get("refused")],
+        "lateral_bound_95_m_median": _median([r["lateral_bound_95_m"] for r in right]),
+        "targets": {"wrong_runs_zero_accepted_rate": ">= 0.95", "wrong_run_max_accepted": "<= 3",
+                    "right_runs_with_alert_rate": "<= 0.10", "right_runs_coverage_ok_rate": ">= 0.95"},
+    }
+
+
+def _prepare_job(args):
+    layout, seed = args
+    try:
+        return seed, prepare_world(layout, seed)
+    except Exception as exc:        # noqa: BLE001 -- one world that cannot be made is reported, not fatal
+        return seed, f"{type(exc).__name__}: {exc}"
+
+
+def _localise_job(args):
+    layout, seed, partner, mode, every = args
+    return localise_world(layout, seed, partner, mode, every)
+
+
+def run_bench(seeds: list[int], mode: str, cache, preset: str = "compact", camera_hz: float = 5.0, every: int = 1,
+              jobs: int = 1, prepare_only: bool = False) -> dict:
+    """Simulate, build and localise every seed's world (resuming from ``cache``); the JSON's content."""
+    layout = Layout(cache, preset, camera_hz)
+    t0 = time.perf_counter()
+    pool = ProcessPoolExecutor(max_workers=jobs) if jobs > 1 else None
+    try:
+        mapper = pool.map if pool else map
+        prepared = dict(mapper(_prepare_job, [(layout, s) for s in seeds]))
+        failed = {s: v for s, v in prepared.items() if isinstance(v, str)}
+        ok = [s for s in seeds if s not in failed]
+        partners = {s: ok[(i + 1) % len(ok)] for i, s in enumerate(ok)}
+        worlds = [] if prepare_only or len(ok) < 2 else list(
+            mapper(_localise_job, [(layout, s, partners[s], mode, every) for s in ok]))
+    finally:
+        if pool:
+            pool.shutdown()
+    return {"benchmark": "integrity", "mode": mode, "seeds": seeds, "preset": preset, "camera_hz": camera_hz,
+            "every": every, "oracle": "none", "training": TRAINING, "live": LIVE,
+            "wrong": [{"run_index": i, "as": a} for i, a in WRONG], "cache": str(layout.root),
+            "prepare_seconds": {str(k): round(v, 1) for k, v in prepared.items() if k not in failed},
+            "failed_worlds": {str(k): v for k, v in failed.items()},
+            "seconds": round(time.perf_counter() - t0, 1), "worlds": worlds,
+            "summary": summarise(worlds) if worlds else None}
+
+
+def main(argv=None) -> int:
+    from scenesig.benchmarks._stages import emit_json
+
+    p = argparse.ArgumentParser(prog="scenesig bench integrity", description=__doc__.split("\n\n")[0])
+    p.add_argument("--seeds", required=True, help="worlds: A-B (inclusive), or a comma list; at least two")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--calibrate", action="store_true", help="monitor tests off; record every frame's statistics")
+    g.add_argument("--evaluate", action="store_true", help="the monitor's defaults")
+    p.add_argument("--preset", default="compact", help="simulator preset (default compact)")
+    p.add_argument("--camera-hz", type=float, default=5.0,
+                   help="camera rate of the simulated runs (default 5: with --every 1 the detector runs at the "
+                        "demo's 10 Hz --every 2 rate, at half the rendering)")
+    p.add_argument("--every", type=int, default=1, help="localise every N-th frame (default 1)")
+    p.add_argument("--jobs", type=int, default=1, help="worlds processed in parallel")
+    p.add_argument("--cache", default="/work/cache/integrity", help="where worlds, maps and localisations are kept")
+    p.add_argument("--prepare-only", action="store_true", help="simulate and build only")
+    p.add_argument("--choose", action="store_true",
+                   help="with --calibrate: choose the monitor's settings and the bound inflation from the recorded "
+                        "statistics (the design error rates: --alpha, --beta)")
+    p.add_argument("--alpha", type=float, default=0.01, help="designed P(wrong map's fix accepted) per probation")
+    p.add_argument("--beta", type=float, default=0.01, help="designed P(right map's fix refused) per probation")
+    p.add_argument("--json", default=None, help="also write the JSON here")
+    a = p.parse_args(argv)
+    try:
+        seeds = parse_seeds(a.seeds)
+    except ValueError as exc:
+        p.error(str(exc))
+    if a.every < 1 or a.jobs < 1 or a.camera_hz <= 0:
+        p.error("--every and --jobs must be >= 1, --camera-hz positive")
+    if a.choose and not a.calibrate:
+        p.error("--choose needs --calibrate")
+    result = run_bench(seeds, "calibrate" if a.calibrate else "evaluate", a.cache, a.preset, a.camera_hz, a.every,
+                       a.jobs, a.prepare_only)
+    if a.choose and result["worlds"]:
+        layout = Layout(a.cache, a.preset, a.camera_hz)
+        done = [w["seed"] for w in result["worlds"]]
+        result["choice"] = choose(recorded_streams(layout, done), a.alpha, a.beta)
+        result["choice"]["inflation"] = inflation(layout, done)
+    emit_json(result, a.json)
+    return 0
+
+
+if __name__ == "__main__":      # pragma: no cover
+    sys.exit(main())
+
+
+# ------------------------------------------------------------------------------------ choosing settings
+def recorded_streams(layout: Layout, seeds) -> list[dict]:
+    """Every calibration localisation's recorded frame statistics, with its map's firing rates."""
+    from scenesig.localiser import firing
+    from scenesig.localiser.integrity import FrameStats
+    from scenesig.mapping.store import MapStore
+
+    out = []
+    for seed in seeds:
+        folder = layout.world(seed) / "loc-calibrate"
+        if not folder.is_dir():
+            continue
+        rates = firing.load(MapStore.open(layout.map(seed)))
+        for run_dir in sorted(folder.iterdir()):
+            stats_path, row_path = run_dir / "integrity_stats.json", run_dir / "row.json"
+            if not (stats_path.exists() and row_path.exists()):
+                continue
+            row = json.loads(row_path.read_text())
+            stats = [FrameStats(**d) for d in json.loads(stats_path.read_text())]
+            out.append({"seed": seed, "kind": row["kind"], "run": row["run"], "stats": stats, "rates": rates,
+                        "dir": run_dir})
+    return out
+
+
+def probation_outcomes(stats, rates, config: dict) -> list[str]:
+    """A probation started at every recorded solved frame (as if a global fix had been found there), fed through
+    the monitor with ``config``: ``"accept"`` or ``"alert"`` each (end of the record: left out)."""
+    from scenesig.localiser.integrity import IntegrityMonitor
+
+    res = []
+    for i in range(len(stats)):
+        if not stats[i].solved:         # a global fix is a solved frame
+            continue
+        mon = IntegrityMonitor(config, "signatures", firing=rates)
+        mon.begin_probation(stats[i].t)
+        for f in stats[i:]:
+            v = mon.assess(f)
+            if v in ("accept", "alert"):
+                res.append(v)
+                break
+    return res
+
+
+def tracking_alerts(stats, rates, config: dict) -> int:
+    """Alerts the monitor raises on a stream tracked from its first frame (trusted, as after a fix)."""
+    from scenesig.localiser.integrity import IntegrityMonitor
+
+    mon = IntegrityMonitor(config, "signatures", firing=rates)
+    for f in stats:
+        mon.assess(f)
+        if mon.state == "alerted":       # count it, then trust again (the localiser would relocalise)
+            mon.state = "trusted"
+    return len(mon.alerts)
+
+
+def _windows(stats, n: int):
+    """(residual, mean NIS) over the solved frames of every window of ``n`` successive frames (the
+    monitor's tracking window)."""
+    out = []
+    for i in range(len(stats) - n + 1):
+        w = [f for f in stats[i:i + n] if f.solved]
+        if not w:
+            continue
+        r2 = np.array([f.residual_chi2 for f in w])
+        dof = np.array([f.residual_dof for f in w])
+        ok = np.isfinite(r2)
+        nis = np.array([f.nis for f in w])
+        out.append((float(r2[ok].sum() / dof[ok].sum()) if ok.any() else np.nan,
+                    float(np.nanmean(nis)) if np.isfinite(nis).any() else np.nan))
+    return np.array(out).reshape(-1, 2)
+
+
+def _ceil(x: float, step: float) -> float:
+    return float(np.ceil(x / step - 1e-9) * step)
+
+
+def run_outcome(stats, rates, config: dict) -> tuple[int, int]:
+    """(accepted frames, alerts) of one recorded stream replayed through the monitor as the localiser uses
+    it without INS/GPS: the first solved frame starts a probation (a global fix); after an alert the next
+    solved frame starts another (the localiser relocalises)."""
+    from scenesig.localiser.integrity import IntegrityMonitor
+
+    mon = IntegrityMonitor(config, "signatures", firing=rates)
+    lost, accepted = True, 0
+    for f in stats:
+        if lost:
+            if not f.solved:
+                continue
+            mon.begin_probation(f.t)
+            lost = False
+        v = mon.assess(f)
+        accepted += v == "accept"
+        lost = v == "alert"
+    return accepted, len(mon.alerts)
+
+
+def choose(streams: list[dict], alpha: float, beta: float) -> dict:
+    """The monitor's settings from calibration streams (each rule in ``docs/integrity.md``):
+
+    * ``sprt_max_residual``, ``sprt_max_nis``: 1.1 x the largest tracking-window value on the right maps' runs;
+    * ``sprt_other_factor`` (κ), ``sprt_own_fraction`` (γ), ``sprt_dispersion`` (φ), ``cusum_h`` and the
+      probation's minimum (``sprt_probation_frames`` at ``sprt_probation_places``): over a grid, each stream
+      replayed through the monitor (:func:`run_outcome`); among the settings with which at least 95 % of
+      the wrong-map runs accept no fix and none accepts more than 3 frames, the one with the fewest
+      right-map runs alerting (then the fewest wrong-map frames accepted, the most right-map frames
+      accepted, the larger φ and h); if none meets the wrong-map target, the one closest to it.  The Wald
+      bounds come from the design rates ``alpha`` and ``beta``; the realised per-probation rates are
+      measured (:func:`probation_outcomes`) and reported beside them.
+    """
+    from scenesig.localiser.integrity import default_config
+
+    right = [s for s in streams if s["kind"] == "right"]
+    wrong = [s for s in streams if s["kind"] == "wrong"]
+    n = int(default_config["window"])
+    win = np.concatenate([_windows(s["stats"], n) for s in right]) if right else np.zeros((0, 2))
+    chosen = {"sprt_max_residual": _ceil(1.1 * np.nanmax(win[:, 0]), 0.1),
+              "sprt_max_nis": _ceil(1.1 * np.nanmax(win[:, 1]), 1.0)}
+    base = {**chosen, "sprt_alpha": alpha, "sprt_beta": beta}
+    grid = []
+    for kappa, gamma, phi, h, frames, places in itertools.product(
+            (1.0, 2.0, 3.0, 4.0), (0.4, 0.6, 0.8), (1.0, 2.0, 4.0), (8.0, 16.0, 32.0), (6, 12), (2, 3)):
+        cfg = {**base, "sprt_other_factor": kappa, "sprt_own_fraction": gamma, "sprt_dispersion": phi,
+               "cusum_h": h, "sprt_probation_frames": frames, "sprt_probation_places": places}
+        r = [run_outcome(s["stats"], s["rates"], cfg) for s in right]
+        w = [run_outcome(s["stats"], s["rates"], cfg) for s in wrong]
+        grid.append({"sprt_other_factor": kappa, "sprt_own_fraction": gamma, "sprt_dispersion": phi, "cusum_h": h,
+                     "sprt_probation_frames": frames, "sprt_probation_places": places,
+                     "right_runs_with_alert_rate": float(np.mean([a > 0 for _, a in r])),
+                     "wrong_runs_zero_accepted_rate": float(np.mean([k == 0 for k, _ in w])),
+                     "wrong_run_max_accepted": int(max(k for k, _ in w)), "wrong_accepted": int(sum(k for k, _ in w)),
+                     "right_accepted": int(sum(k for k, _ in r))})
+    ok = [g for g in grid if g["wrong_runs_zero_accepted_rate"] >= 0.95 and g["wrong_run_max_accepted"] <= 3]
+    if ok:
+        best = min(ok, key=lambda g: (g["right_runs_with_alert_rate"], g["wrong_accepted"], -g["right_accepted"],
+                                      -g["sprt_dispersion"], -g["cusum_h"]))
+    else:
+        best = min(grid, key=lambda g: (-g["wrong_runs_zero_accepted_rate"], g["right_runs_with_alert_rate"],
+                                        g["wrong_accepted"]))
+    chosen.update({k: best[k] for k in ("sprt_other_factor", "sprt_own_fraction", "sprt_dispersion", "cusum_h",
+                                         "sprt_probation_frames", "sprt_probation_places")})
+    cfg = {**base, **chosen}
+    r = [v for s in right for v in probation_outcomes(s["stats"], s["rates"], cfg)]
+    w = [v for s in wrong for v in probation_outcomes(s["stats"], s["rates"], cfg)]
+    return {"chosen": chosen, "selected": best, "grid": grid, "meets_wrong_target": bool(ok),
+            "probations": {"right": len(r), "wrong": len(w),
+                           "false_alarm_rate": float(np.mean([v == "alert" for v in r])) if r else None,
+                           "missed_detection_rate": float(np.mean([v == "accept" for v in w])) if w else None,
+                           "design": {"false_alarm": beta, "missed_detection": alpha}},
+            "right_windows": int(len(win)), "right_runs": len(right), "wrong_runs": len(wrong)}
+
+
+def _probation_length(stats, rates, config) -> float:
+    """Mean frames a probation started at each recorded frame takes to be accepted (NaN if none is)."""
+    from scenesig.localiser.integrity import IntegrityMonitor
+
+    lengths = []
+    for i in range(len(stats)):
+        if not stats[i].solved:
+            continue
+        mon = IntegrityMonitor(config, "signatures", firing=rates)
+        mon.begin_probation(stats[i].t)
+        for k, f in enumerate(stats[i:]):
+            v = mon.assess(f)
+            if v == "accept":
+                lengths.append(k + 1)
+            if v in ("accept", "alert"):
+                break
+    return float(np.mean(lengths)) if lengths else np.nan
+
+
+def inflation(layout: Layout, seeds, target: float = COVERAGE_OK, share: float = 0.95) -> dict:
+    """The bound inflation ``k``: the smallest multiple of 0.05 with which at least ``share`` of the
+    calibration right-map runs have ``bound_coverage_95`` >= ``target`` (each run's needed factor is the
+    ``target`` quantile of |error| / raw bound over its localised frames)."""
+    from scenesig.benchmarks.uncertainty import _errors, _raw
+
+    need = {}
+    for seed in seeds:
+        folder = layout.world(seed) / "loc-calibrate"
+        for run_dir in sorted(folder.glob("run*")):
+            if not (run_dir / "metrics.json").exists():
+                continue
+            metrics, err, bound, loc = _errors(run_dir)
+            raw = _raw(metrics, bound)
+            ok = np.isfinite(err) & np.isfinite(raw) & (raw > 0) & loc
+            if ok.sum() >= 10:
+                need[f"{seed}/{run_dir.name}"] = float(np.quantile(err[ok] / raw[ok], target))
+    if not need:
+        return {"k": None, "needed": {}}
+    v = np.sort(list(need.values()))
+    k = _ceil(float(np.quantile(v, share, method="higher")), 0.05)
+    return {"k": k, "needed": need, "rule": f"smallest 0.05 step covering {share:.1%} of runs at {target}"}

@@ -1,0 +1,198 @@
+"""The integrity monitor's sequential test (Wald's SPRT in probation, Page's CUSUM while tracking) on
+synthetic Bernoulli streams, the firing-rate file beside a map, and the integrity bench's plumbing."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from scenesig.localiser.integrity import FrameStats, IntegrityMonitor
+
+OWN, OTHER = 0.6, 0.1          # a place's firing rates: on its own place, elsewhere
+SEARCHED = 40                  # signatures searched per frame
+#: independent firings (dispersion 1): the setting in which Wald's bounds hold as stated
+DESIGN = {"sprt_alpha": 0.01, "sprt_beta": 0.01, "sprt_other_factor": 1.0, "sprt_own_fraction": 0.5,
+          "sprt_dispersion": 1.0, "cusum_h": 8.0, "sprt_probation_frames": 6, "sprt_probation_places": 2}
+
+
+def _p1():
+    return OTHER + DESIGN["sprt_own_fraction"] * (OWN - OTHER)
+
+
+def _frame(rng, t, place, rate):
+    k = int(rng.binomial(SEARCHED, rate))
+    # residual and innovation unknown (NaN): only the sequential test speaks
+    return FrameStats(t, place, k, k, SEARCHED, True, np.nan, 1.0, np.nan, np.nan)
+
+
+def _probation(rng, rate, rates):
+    m = IntegrityMonitor(DESIGN, firing=rates)
+    m.begin_probation(0.0)
+    for i in range(200):
+        v = m.assess(_frame(rng, 0.2 * i, 3 + i, rate))      # one frame per place: independent draws
+        if v in ("accept", "alert"):
+            return v, i + 1
+    return "undecided", 200
+
+
+def test_sprt_error_rates_are_within_the_design():
+    rng = np.random.default_rng(0)
+    rates = {p: (OWN, OTHER) for p in range(200)}
+    n = 1500
+    right = [_probation(rng, _p1(), rates) for _ in range(n)]
+    wrong = [_probation(rng, OTHER, rates) for _ in range(n)]
+    false_alarm = np.mean([v != "accept" for v, _ in right])
+    missed = np.mean([v == "accept" for v, _ in wrong])
+    # Wald: the realised rates are at most alpha / (1 - beta) and beta / (1 - alpha) (plus sampling noise:
+    # 3 binomial standard deviations at n = 1500)
+    a, b = DESIGN["sprt_alpha"], DESIGN["sprt_beta"]
+    assert missed <= a / (1 - b) + 3 * np.sqrt(a / n)
+    assert false_alarm <= b / (1 - a) + 3 * np.sqrt(b / n)
+    # and it decides: right fixes are accepted after the minimum probation, wrong ones refused quickly
+    assert np.median([k for v, k in right]) <= 8 and np.median([k for v, k in wrong]) <= 4
+
+
+def test_sprt_at_the_midpoint_rate_is_undecided_and_alerts():
+    rng = np.random.default_rng(1)
+    rates = {p: (OWN, OTHER) for p in range(200)}
+    out = [_probation(rng, 0.5 * (OTHER + _p1()), rates)[0] for _ in range(200)]
+    assert set(out) <= {"accept", "alert"}     # probation_max_frames ends every probation
+
+
+def test_cusum_rarely_alerts_on_the_right_map_and_quickly_on_another():
+    rng = np.random.default_rng(2)
+    rates = {p: (OWN, OTHER) for p in range(1000)}
+    runs = 200
+    alerted = 0
+    for _ in range(runs):
+        m = IntegrityMonitor(DESIGN, firing=rates)
+        for i in range(150):
+            m.assess(_frame(rng, 0.2 * i, i, _p1()))
+        alerted += bool(m.alerts)
+    # ARL under H1 of Page's test is at least e^h places: 150 places alert with probability <= 150 e^-h
+    assert alerted / runs <= 150 * np.exp(-DESIGN["cusum_h"]) + 3 * np.sqrt(0.05 / runs)
+    m = IntegrityMonitor(DESIGN, firing=rates)
+    for i in range(20):
+        m.assess(_frame(rng, 0.2 * i, 0, _p1()))
+    assert not m.alerts
+    verdicts = [m.assess(_frame(rng, 4 + 0.2 * i, 100 + i, OTHER)) for i in range(10)]
+    assert "alert" in verdicts[:6] and "sequential test" in m.alerts[0].reason
+
+
+def test_a_place_counts_once_however_long_the_vehicle_stands_there():
+    """A look-alike seen for seconds at a crossing is one place's evidence, not one per frame."""
+    rng = np.random.default_rng(4)
+    rates = {p: (OWN, OTHER) for p in range(10)}
+    m = IntegrityMonitor(DESIGN, firing=rates)
+    m.begin_probation(0.0)
+    # a look-alike: firing at H1's rate, at one place for 40 frames -- not accepted (one place)
+    assert {m.assess(_frame(rng, 0.2 * i, 3, _p1())) for i in range(40)} == {"tentative"}
+    one_place = m._llr
+    # the same evidence once: the LLR of the place's mean firing (about 9 here), not 40 times it (~360)
+    single = m._llr_of(3, _p1() * SEARCHED, SEARCHED)
+    assert abs(one_place - single) < 0.5 * single
+    # the next place fires at another place's rate: the test ends with an alert
+    assert "alert" in [m.assess(_frame(rng, 8 + 0.2 * i, 4 + i, OTHER)) for i in range(6)]
+
+
+def test_without_firing_rates_the_thresholds_decide():
+    m = IntegrityMonitor(DESIGN, firing=None)
+    assert m.rates is None and m.frame_llr(FrameStats(0, 1, 5, 5, 40, True, 1, 4, 1, 0.1)) == 0.0
+    m = IntegrityMonitor({**DESIGN, "sprt": False}, firing={1: (OWN, OTHER)})
+    assert m.rates is None
+    with pytest.raises(ValueError, match="sprt_alpha"):
+        IntegrityMonitor({"sprt_alpha": 0.7}, firing={1: (OWN, OTHER)})
+
+
+def test_firing_file_belongs_to_one_map_state(tmp_path, caplog):
+    from scenesig.localiser import firing
+
+    class Store:
+        root = tmp_path
+        map_id = "a"
+        generation = 0
+
+    assert firing.load(Store) is None                                    # an old map: none
+    doc = {"version": firing.VERSION, "map_id": "a", "generation": 0, "settings": {},
+           "places": {"2": {"own": 0.5, "other": 0.1}}}
+    (tmp_path / firing.FILE).write_text(json.dumps(doc))
+    assert firing.load(Store) == {2: (0.5, 0.1)}
+    Store.generation = 1                                                  # updated since: stale
+    assert firing.load(Store) is None and "another map state" in caplog.text
+    (tmp_path / firing.FILE).write_text("{")
+    from scenesig.surveys.errors import DataError
+
+    with pytest.raises(DataError, match="firing"):
+        firing.load(Store)
+
+
+def test_bench_seeds_and_summary():
+    from scenesig.benchmarks.integrity import parse_seeds, summarise
+
+    assert parse_seeds("3-5,9") == [3, 4, 5, 9]
+    for bad in ("5", "x-3", "5-3"):
+        with pytest.raises(ValueError):
+            parse_seeds(bad)
+    runs = [{"kind": "wrong", "localisations": 0, "integrity_alerts": 2, "false_fixes": 0, "failures": 0,
+             "bound_coverage_95": None, "lateral_bound_95_m": None},
+            {"kind": "wrong", "localisations": 4, "integrity_alerts": 1, "false_fixes": 4, "failures": 0,
+             "bound_coverage_95": None, "lateral_bound_95_m": None},
+            {"kind": "right", "localisations": 90, "integrity_alerts": 0, "false_fixes": 0, "failures": 0,
+             "bound_coverage_95": 0.95, "lateral_bound_95_m": 0.5},
+            {"kind": "right", "localisations": 80, "integrity_alerts": 1, "false_fixes": 0, "failures": 0,
+             "bound_coverage_95": 0.85, "lateral_bound_95_m": 0.7}]
+    s = summarise([{"seed": 1, "runs": runs}])
+    assert s["wrong_runs_zero_accepted_rate"] == 0.5 and s["wrong_run_max_accepted"] == 4
+    assert s["right_runs_with_alert_rate"] == 0.5 and s["right_runs_coverage_ok_rate"] == 0.5
+
+
+def test_choose_meets_the_targets_on_synthetic_streams():
+    from scenesig.benchmarks.integrity import choose
+
+    rng = np.random.default_rng(3)
+    rates = {p: (OWN, OTHER) for p in range(100)}
+
+    def stream(rate, residual):
+        return [FrameStats(0.2 * i, i // 5, k, k, SEARCHED, True, residual * (2 * k - 6), max(2 * k - 6, 1),
+                           3.0, 0.1) for i, k in enumerate(rng.binomial(SEARCHED, rate, 80))]
+
+    streams = ([{"kind": "right", "stats": stream(0.45, 1.0), "rates": rates} for _ in range(3)]
+               + [{"kind": "wrong", "stats": stream(0.08, 1.5), "rates": rates} for _ in range(3)])
+    out = choose(streams, alpha=0.01, beta=0.01)
+    c, sel = out["chosen"], out["selected"]
+    assert c["sprt_max_residual"] >= 1.1 and c["sprt_max_nis"] >= 3.3
+    assert out["meets_wrong_target"] and sel["wrong_runs_zero_accepted_rate"] == 1.0
+    assert sel["right_runs_with_alert_rate"] == 0.0 and sel["right_accepted"] > 150
+    # the realised per-probation error rates are measured and reported beside the design
+    assert out["probations"]["missed_detection_rate"] == 0.0 and out["probations"]["false_alarm_rate"] <= 0.05
+
+
+@pytest.mark.heavy
+def test_bench_runs_end_to_end_on_the_tiny_preset(tmp_path):
+    """Two tiny worlds: simulated, built (with firing rates), localised right and wrong; the JSON's shape."""
+    from scenesig.benchmarks.integrity import main
+
+    out = tmp_path / "r.json"
+    assert main(["--seeds", "7-8", "--evaluate", "--preset", "tiny", "--camera-hz", "4", "--cache",
+                 str(tmp_path / "cache"), "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert [w["seed"] for w in doc["worlds"]] == [7, 8] and not doc["failed_worlds"]
+    kinds = [r["kind"] for r in doc["worlds"][0]["runs"]]
+    assert kinds.count("right") == 5 and kinds.count("wrong") == 2
+    for r in doc["worlds"][0]["runs"]:
+        assert {"localisations", "false_fixes", "integrity_alerts", "bound_coverage_95", "lateral_bound_95_m",
+                "failures", "condition"} <= set(r)
+    s = doc["summary"]
+    for key in ("wrong_runs_zero_accepted_rate", "wrong_run_max_accepted", "right_runs_with_alert_rate",
+                "right_runs_coverage_ok_rate"):
+        assert key in s
+    assert (tmp_path / "cache" / "tiny-4hz" / "seed7" / "map" / "firing.json").exists()
+    # the wrong-world runs are stripped copies: no metadata, no name, no condition to read
+    toml = (tmp_path / "cache" / "tiny-4hz" / "seed7" / "wrong" / "drive1" / "run.toml").read_text()
+    assert "[metadata]" not in toml and 'name = "drive1"' in toml and "unknown" in toml
+    # a rerun resumes from the cache: the same rows, nothing recomputed
+    out2 = tmp_path / "r2.json"
+    assert main(["--seeds", "7-8", "--evaluate", "--preset", "tiny", "--camera-hz", "4", "--cache",
+                 str(tmp_path / "cache"), "--json", str(out2)]) == 0
+    assert json.loads(out2.read_text())["worlds"] == doc["worlds"]
