@@ -195,8 +195,8 @@ def run_benchmark(map_runs, query, methods=None, tolerance: int = 2, jobs: int =
     ref, q = runs[0], runs[-1]
     for r in runs[1:-1]:
         if not _aligned(ref, r) or len(r) != len(ref):
-            raise DataError(r.root, f"map run {r.name} is not frame-aligned with the reference {ref.name} "
-                                    "(import it with --aligned-with the reference): a place is frame p of every map run")
+            raise DataError(r.root, f"map run {r.name} is not frame-aligned with the reference {ref.name} (import "
+                                    "it with --aligned-with the reference): a place is frame p of every map run")
     if int(tolerance) < 0:
         raise ValueError(f"tolerance must be >= 0 frames, got {tolerance}")
     if methods is None:
@@ -249,8 +249,8 @@ def run_benchmark(map_runs, query, methods=None, tolerance: int = 2, jobs: int =
         if name in ("signatures-seq", "seqslam"):
             doc["methods"][name]["sequence_length"] = int(cfg["sequence_length"])
         full["matches"][name] = best.tolist()
-        print(f"{name}: recall@1 {correct.mean():.3f} (±{tolerance} frames), {1e3 * timing['cpu'] / n:.1f} CPU ms/frame",
-              file=sys.stderr)
+        print(f"{name}: recall@1 {correct.mean():.3f} (±{tolerance} frames), "
+              f"{1e3 * timing['cpu'] / n:.1f} CPU ms/frame", file=sys.stderr)
     if json_path is not None:
         from scenesig.surveys.io import atomic_write_text
 
