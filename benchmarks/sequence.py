@@ -173,7 +173,7 @@ def _xfeat_available() -> bool:
 
 # ---------------------------------------------------------------------------------- harness
 def run_benchmark(map_runs, query, methods=None, tolerance: int = 2, jobs: int = 1, progress: bool = True,
-                  config: dict | None = None, json_path=None) -> dict:
+                  config: dict | None = None, json_path=None, frames: tuple[int, int] | None = None) -> dict:
     """Score every method on one query run against the map runs; returns (and writes) the JSON document.
 
     Parameters
@@ -182,6 +182,7 @@ def run_benchmark(map_runs, query, methods=None, tolerance: int = 2, jobs: int =
     query : the query run.
     methods : names from :data:`METHODS`; None: all, ``xfeat`` only where its model is present.
     tolerance : frames either side of the truth that count as correct.
+    frames : ``(start, stop)``: only frames start..stop-1 of every run (a segment of the route), else all.
     config : overrides of :data:`scenesig.benchmarks.places.default_config` (``shortlist``,
         ``sequence_length``, ``cache`` ...) and of this module's ``xfeat`` settings.
     """
@@ -192,6 +193,13 @@ def run_benchmark(map_runs, query, methods=None, tolerance: int = 2, jobs: int =
     runs = [r if isinstance(r, SurveyRun) else read_run(r) for r in list(map_runs) + [query]]
     if len(runs) < 2:
         raise ValueError("give at least one map run and a query run")
+    if frames is not None:
+        start, stop = int(frames[0]), int(frames[1])
+        if not 0 <= start < stop:
+            raise ValueError(f"frames must be START:STOP with 0 <= START < STOP, got {start}:{stop}")
+        runs = [r.without_frames([i for i in range(len(r)) if not start <= i < stop]) for r in runs]
+        if any(len(r) == 0 for r in runs):
+            raise ValueError(f"frames {start}:{stop} leave a run without frames")
     ref, q = runs[0], runs[-1]
     for r in runs[1:-1]:
         if not _aligned(ref, r) or len(r) != len(ref):
@@ -217,6 +225,8 @@ def run_benchmark(map_runs, query, methods=None, tolerance: int = 2, jobs: int =
                          [(i, n_map) for i in range(len(q))], len(ref), int(tolerance), n_map)
     doc = {"map_runs": [r.name for r in runs[:-1]], "query": q.name, "frames": len(q), "places": len(ref),
            "tolerance": int(tolerance), "truth": how, "methods": {}}
+    if frames is not None:
+        doc["segment"] = [int(frames[0]), int(frames[0]) + len(ref)]
     full = {"truth": truth.tolist(), "matches": {}}
     verified = None
     for name in methods:
@@ -320,6 +330,8 @@ def main(argv=None) -> int:
     p.add_argument("--sequence-length", type=int, default=None,
                    help="signatures-seq and seqslam: frames per sequence (default: bench places')")
     p.add_argument("--cache", default=None, help="folder caching the mined signature banks")
+    p.add_argument("--frames", default=None, metavar="START:STOP",
+                   help="only frames START..STOP-1 of every run (a segment of the route)")
     p.add_argument("--export-sim", default=None, metavar="OUT",
                    help="instead: write frame-aligned image folders of the simulated runs given (first = reference)")
     p.add_argument("--spacing", type=float, default=4.0, help="--export-sim: metres between reference frames")
@@ -336,8 +348,16 @@ def main(argv=None) -> int:
             config["shortlist"] = sl if sl.endswith("%") else int(sl)
         if args.sequence_length is not None:
             config["sequence_length"] = args.sequence_length
+        frames = None
+        if args.frames is not None:
+            try:
+                frames = tuple(int(v) for v in args.frames.split(":"))
+                assert len(frames) == 2
+            except (ValueError, AssertionError):
+                p.error(f"--frames {args.frames!r}: expected START:STOP")
         doc = run_benchmark(args.map_runs, args.query, args.methods.split(",") if args.methods else None,
-                            args.tolerance, jobs=max(1, args.jobs), config=config, json_path=args.json)
+                            args.tolerance, jobs=max(1, args.jobs), config=config, json_path=args.json,
+                            frames=frames)
     except ValueError as exc:     # DataError is a ValueError: the file and what is wrong
         print(f"scenesig bench sequence: error: {exc}", file=sys.stderr)
         return 2

@@ -165,9 +165,8 @@ class _FakeSession:
 
 
 def _msgs():
-    from scenesig.surveys.geometry import make_pose, rot_z
+    from scenesig.surveys.geometry import Camera, make_pose, rot_z
     from scenesig.surveys.importers.rosbag import _camera_info_msg, _odometry_msg, _tf_msg
-    from scenesig.surveys.geometry import Camera
 
     ts = _typestore()
     cam = Camera(100.0, 100.0, 31.5, 23.5, 64, 48)
@@ -240,8 +239,8 @@ def test_navsatfix_and_gnss_pose_reach_the_session():
     """NavSatFix is turned into a map-frame pose about the datum (heading along the path, after 1 m); a pose
     topic is passed as it is; both wait for the session."""
     from scenesig.ros2_node import LocalisationNode
-    from scenesig.surveys.importers.rosbag import _header, _odometry_msg
     from scenesig.surveys.geometry import make_pose
+    from scenesig.surveys.importers.rosbag import _header, _odometry_msg
 
     ts, cam, T_vc, odom, info, tf_static = _msgs()
     made = []
