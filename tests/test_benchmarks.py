@@ -301,3 +301,21 @@ def test_every_benchmark_has_a_smoke_test():
     missing = [name for name in BENCHMARKS if name.replace("_", "-") not in tested]
     assert not missing, f"benchmarks without a smoke test in tests/test_benchmarks.py: {missing}"
     assert np.isfinite(len(BENCHMARKS))
+
+
+def test_sequence(tiny_world, tmp_path, capsys):
+    """``bench sequence``: two simulated runs exported as frame-aligned image folders (``--export-sim``),
+    imported as ``scenesig import images`` does, scored with the cheap methods."""
+    from scenesig.surveys.importers.image_folder import import_image_folder
+
+    runs, _ = tiny_world
+    a, b = runs[0], runs[-1]
+    exp = _run("sequence", [a.root, b.root, "--export-sim", tmp_path / "folders", "--spacing", "6"], capsys)
+    assert exp["frames"] > 5 and max(exp["max_distance_to_reference_m"].values()) < 3.0
+    ref = import_image_folder(tmp_path / "folders" / a.name, tmp_path / "ref",
+                              {"hz": 1, "positions": tmp_path / "folders" / f"{a.name}_positions.csv"}, progress=False)
+    q = import_image_folder(tmp_path / "folders" / b.name, tmp_path / "q", {"hz": 1, "aligned_with": ref},
+                            progress=False)
+    doc = _run("sequence", [ref, "--query", q, "--methods", "hog,seqslam", "--json", tmp_path / "s.json"], capsys,
+               tmp_path / "s.json")
+    assert doc["frames"] == exp["frames"] and len(doc["matches"]["hog"]) == exp["frames"]
