@@ -706,6 +706,11 @@ def localise_run(map_root, run_root, method: str = "signatures", every: int = DE
                                       truth_poses=None, gps=None)
     else:
         run = read_run(run_root, skip=("groundtruth", "gps", "truth") if blind else ())
+    if run.odometry_source == "none":
+        # an image folder (scenesig import images): odometry.csv holds the identity, which is no motion
+        raise DataError((run.root or Path(run.name)) / "run.toml",
+                        "odometry_source is 'none' (an image-folder import): the localiser needs odometry; "
+                        "without it, match the run against reference traverses with scenesig bench sequence")
     if not blind:
         _oracle(run)          # no INS/GPS: say so before anything else (DataError naming groundtruth.tum)
     cam = check_camera(store, run, consistency=camera_check)

@@ -181,3 +181,13 @@ def test_real_sequence_folder(grief_root, tmp_path, capsys):
     doc = json.loads(capsys.readouterr().out)
     assert doc["frames"] == 101 and doc["truth"] == "frame alignment"
     assert doc["methods"]["hog"]["recall_at_1"] > 0.3           # chance is 5/101
+
+
+def test_localise_refuses_a_run_without_odometry(tiny_world, tmp_path, capsys):
+    """An image-folder run's odometry.csv holds the identity (no motion known): the replay refuses it, naming
+    run.toml and the command that does localise such a run."""
+    _, root = tiny_world
+    run = import_image_folder(_folder(tmp_path / "seq", 3), tmp_path / "run", {"hz": 1}, progress=False)
+    assert _cli(["localise", str(root), str(run), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "run.toml" in err and "odometry_source is 'none'" in err and "bench sequence" in err
