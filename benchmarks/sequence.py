@@ -37,7 +37,7 @@ of query frames accepted, most confident first (the method's own best score), be
 one.  ``cpu_ms_per_frame`` is process CPU time of the query side (all threads), ``ms_per_frame`` its
 wall time; building the map side (mining, vocabulary, map descriptors) is ``seconds_map``.  ``--json
 OUT`` also writes, per method, ``matches``: the matched reference frame of every query frame (the
-localisation result of an odometry-free run), and ``truth``.
+localisation result of an odometry-free run), and ``truth_frames``: the true reference frame of each.
 
 ``--export-sim OUT --spacing M`` prepares a simulator pair instead: the runs given are simulated
 survey runs (the first the reference); frames of the reference every M metres of its true path, and
@@ -227,7 +227,7 @@ def run_benchmark(map_runs, query, methods=None, tolerance: int = 2, jobs: int =
            "tolerance": int(tolerance), "truth": how, "methods": {}}
     if frames is not None:
         doc["segment"] = [int(frames[0]), int(frames[0]) + len(ref)]
-    full = {"truth": truth.tolist(), "matches": {}}
+    full = {"truth_frames": truth.tolist(), "matches": {}}
     verified = None
     for name in methods:
         timing: dict = {}

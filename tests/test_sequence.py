@@ -130,7 +130,7 @@ def test_bench_sequence_scores_methods_on_aligned_traverses(traverses, tmp_path,
         assert m["cpu_ms_per_frame"] > 0 and m["precision_at_100_recall"] == m["recall_at_1"]
     assert doc["methods"]["hog"]["recall_at_1"] == 1.0           # distinct textures: the right place every time
     full = json.loads(out.read_text())
-    assert full["matches"]["hog"] == list(range(14)) and full["truth"] == list(range(14))
+    assert full["matches"]["hog"] == list(range(14)) and full["truth_frames"] == list(range(14))
 
 
 @pytest.mark.heavy
@@ -160,7 +160,8 @@ def test_bench_sequence_truth_from_positions_or_an_error(tmp_path, capsys):
                             progress=False)
     doc = run_benchmark([ref], q, ["hog"], tolerance=0, progress=False, json_path=tmp_path / "o.json")
     assert doc["truth"] == "positions"
-    assert json.loads((tmp_path / "o.json").read_text())["truth"] == [2, 2, 3, 3, 4, 4, 5, 5]  # nearest (ties: first)
+    # the reference frame nearest each query position (a tie goes to the first)
+    assert json.loads((tmp_path / "o.json").read_text())["truth_frames"] == [2, 2, 3, 3, 4, 4, 5, 5]
     bare = import_image_folder(_folder(tmp_path / "c", 8), tmp_path / "rc", {"hz": 1}, progress=False)
     assert _cli(["bench", "sequence", str(ref), "--query", str(bare), "--methods", "hog"]) == 2
     assert "no truth" in capsys.readouterr().err
