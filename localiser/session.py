@@ -258,7 +258,7 @@ class Session:
         if self._held is not None and self._held[0] <= t:
             th, img, key = self._held
             self._held = None
-            fix = self._frame(th, img, key)
+            fix = self._frame(max(th, self.t_start), img, key)   # a frame before the start: at the start pose
         return fix
 
     def start(self, t: float) -> None:
