@@ -160,6 +160,17 @@ def test_gnss_oracle_held_late_and_out_of_order_frames(tiny_world):
     assert est.t == odo_t[k] and est.covariance.shape == (6, 6) and np.isfinite(est.lateral_bound_95_m)
     assert est.state in ("tracking", "lost")
     s.close()
+    # out of order within the latency limit (here 0.6 s, two frames of this 4 Hz camera): localised at its time
+    s, run = _session(tiny_world, config={"max_latency_s": 0.6})
+    for t in run.groundtruth_times:
+        s.add_gnss(t, run.pose_at(t, "groundtruth"))
+    s.add_odometry(odo_t[0], np.eye(4))
+    for k in range(1, int(np.searchsorted(odo_t, ft[i + 2])) + 2):
+        s.add_odometry(odo_t[k], incs[k - 1])
+    s.add_image(ft[i + 2], run.image(i + 2))
+    s.add_image(ft[i + 1], run.image(i + 1))
+    assert s.last_frame.t == ft[i + 1] and s.frames_too_late == 0 and s.frames_dropped == 0
+    s.close()
 
 
 def test_session_refuses_bad_input(tiny_world):
