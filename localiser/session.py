@@ -171,6 +171,9 @@ class Session:
     last_frame : the :class:`FrameReport` of the latest processed image.
     frames_dropped : held frames replaced by a newer one before the odometry reached them.
     frames_too_late : frames later than ``max_latency_s``.
+
+    The calls are made from one thread (a ROS 2 node's single-threaded executor; the replay's real-time mode
+    runs the detector and solver stages on two threads through the session's own lock).
     """
 
     def __init__(self, map, camera, T_vehicle_camera, method: WeakLocaliser | str = "signatures", oracle=None,
@@ -232,6 +235,9 @@ class Session:
         k = bisect.bisect_right(self._gnss_t, t)
         self._gnss_t.insert(k, t)
         self._gnss_T.insert(k, T)
+        if len(self._gnss_t) > 20000:     # a long drive: the oracle is read at the start and at resets, now
+            del self._gnss_t[:10000]
+            del self._gnss_T[:10000]
 
     def _gnss_pose(self, t: float) -> np.ndarray:
         from scenesig.surveys.geometry import interpolate_poses
