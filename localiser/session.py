@@ -171,6 +171,7 @@ class Session:
     last_frame : the :class:`FrameReport` of the latest processed image.
     frames_dropped : held frames replaced by a newer one before the odometry reached them.
     frames_too_late : frames later than ``max_latency_s``.
+    frames_held : frames that arrived before the odometry reached them (processed later).
 
     The calls are made from one thread (a ROS 2 node's single-threaded executor; the replay's real-time mode
     runs the detector and solver stages on two threads through the session's own lock).
@@ -222,6 +223,7 @@ class Session:
         self.last_frame: FrameReport | None = None
         self.frames_dropped = 0
         self.frames_too_late = 0
+        self.frames_held = 0
 
     # ------------------------------------------------------------------------------ inputs
     def add_gnss(self, t: float, T_world_vehicle) -> None:
@@ -303,6 +305,7 @@ class Session:
                 if self._held[0] > t:        # out of order: keep the newer one
                     return None
             self._held = (t, img, key)
+            self.frames_held += 1
             return None
         lim = self.config["max_latency_s"]
         if lim is not None and t < self.t_odometry - float(lim):

@@ -233,7 +233,8 @@ def test_session(tiny_world, tmp_path, capsys):
     assert night["every"] == 2 and night["image_size"] == [runs[2].camera.width, runs[2].camera.height]
     for m in ("signatures", "orb"):
         fast, paced = night[m]["unpaced"], night[m]["paced"]
-        assert fast["add_image_wall_ms"]["calls"] == fast["frames"] == 6
+        assert fast["add_image_wall_ms"]["calls"] == fast["frames"] == 6 and fast["frames_held"] == 0
+        assert fast["add_image_cpu_ms"]["max"] > 0
         assert 0 < fast["add_image_wall_ms"]["p50"] <= fast["add_image_wall_ms"]["max"]
         assert paced["max_blocking_ms"] >= paced["add_image_wall_ms"]["max"]
         assert paced["within_period"] == (paced["calls_over_period"] == 0)
