@@ -171,6 +171,10 @@ class Session:
     last_frame : the :class:`FrameReport` of the latest processed image.
     frames_dropped : held frames replaced by a newer one before the odometry reached them.
     frames_too_late : frames later than ``max_latency_s``.
+    frames_held : frames that arrived before the odometry reached them (processed later).
+
+    The calls are made from one thread (a ROS 2 node's single-threaded executor; the replay's real-time mode
+    runs the detector and solver stages on two threads through the session's own lock).
     """
 
     def __init__(self, map, camera, T_vehicle_camera, method: WeakLocaliser | str = "signatures", oracle=None,
@@ -219,6 +223,7 @@ class Session:
         self.last_frame: FrameReport | None = None
         self.frames_dropped = 0
         self.frames_too_late = 0
+        self.frames_held = 0
 
     # ------------------------------------------------------------------------------ inputs
     def add_gnss(self, t: float, T_world_vehicle) -> None:
@@ -232,6 +237,9 @@ class Session:
         k = bisect.bisect_right(self._gnss_t, t)
         self._gnss_t.insert(k, t)
         self._gnss_T.insert(k, T)
+        if len(self._gnss_t) > 20000:     # a long drive: the oracle is read at the start and at resets, now
+            del self._gnss_t[:10000]
+            del self._gnss_T[:10000]
 
     def _gnss_pose(self, t: float) -> np.ndarray:
         from scenesig.surveys.geometry import interpolate_poses
@@ -258,7 +266,7 @@ class Session:
         if self._held is not None and self._held[0] <= t:
             th, img, key = self._held
             self._held = None
-            fix = self._frame(th, img, key)
+            fix = self._frame(max(th, self.t_start), img, key)   # a frame before the start: at the start pose
         return fix
 
     def start(self, t: float) -> None:
@@ -297,6 +305,7 @@ class Session:
                 if self._held[0] > t:        # out of order: keep the newer one
                     return None
             self._held = (t, img, key)
+            self.frames_held += 1
             return None
         lim = self.config["max_latency_s"]
         if lim is not None and t < self.t_odometry - float(lim):

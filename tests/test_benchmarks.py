@@ -217,6 +217,30 @@ def test_demo_localise(tiny_world, tmp_path, capsys):
     assert doc["live_runs"] == [runs[2].name]
 
 
+def test_session(tiny_world, tmp_path, capsys):
+    """scenesig.Session's per-call latency on a demo-shaped folder of the tiny world (its night run, a few
+    frames, paced at the data's clock)."""
+    runs, root = tiny_world
+    demo = tmp_path / "demo"
+    (demo / "world").mkdir(parents=True)
+    for r in runs:
+        (demo / "world" / r.root.name).symlink_to(r.root)
+    (demo / "map").symlink_to(root)
+    (demo / "summary.json").write_text(json.dumps({"runs": [{"run": r.name} for r in runs[1:]]}))
+    doc = _run("session", [demo, "--conditions", "night", "--methods", "signatures,orb", "--detector-hz", "2",
+                           "--frames", "6", "--json", tmp_path / "s.json"], capsys, tmp_path / "s.json")
+    night = doc["runs"][runs[2].name]
+    assert night["every"] == 2 and night["image_size"] == [runs[2].camera.width, runs[2].camera.height]
+    for m in ("signatures", "orb"):
+        fast, paced = night[m]["unpaced"], night[m]["paced"]
+        assert fast["add_image_wall_ms"]["calls"] == fast["frames"] == 6 and fast["frames_held"] == 0
+        assert fast["add_image_cpu_ms"]["max"] > 0
+        assert 0 < fast["add_image_wall_ms"]["p50"] <= fast["add_image_wall_ms"]["max"]
+        assert paced["max_blocking_ms"] >= paced["add_image_wall_ms"]["max"]
+        assert paced["within_period"] == (paced["calls_over_period"] == 0)
+    assert doc["signatures_p95_ms_worst"] == night["signatures"]["unpaced"]["add_image_wall_ms"]["p95"]
+
+
 # -------------------------------------------------------------------------- a few real frames
 def test_kitti_import(tmp_path, capsys):
     drive = _shared("kitti", "2011_09_26_snippet")

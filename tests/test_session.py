@@ -53,7 +53,7 @@ def _feed(session, run, every: int, gray: bool = True):
     ft = np.asarray(run.frame_times, float)
     poses = np.full((len(ft), 4, 4), np.nan)
     covs = np.full((len(ft), 6, 6), np.nan)
-    fixes = {}
+    fixes, states = {}, []
 
     def frame(i):
         if i % every == 0:
@@ -62,6 +62,7 @@ def _feed(session, run, every: int, gray: bool = True):
                 fix = session.flush()      # after the last odometry sample: held, processed at once
             fixes[i] = fix
         est = session.pose(max(ft[i], odo_t[0]))
+        states.append(session.state)
         if est is not None:
             poses[i], covs[i] = est.pose, est.covariance
 
@@ -76,7 +77,7 @@ def _feed(session, run, every: int, gray: bool = True):
     while fi < len(ft):
         frame(fi)
         fi += 1
-    return poses, covs, fixes
+    return poses, covs, fixes, states
 
 
 @pytest.mark.parametrize("condition,method,oracle,every", [("night", "signatures", "ins", 4),
@@ -90,7 +91,7 @@ def test_session_frame_by_frame_is_the_replay(tiny_world, condition, method, ora
     result, store = localise_run(root, run.root, method, every=every, oracle=oracle, progress=False)
     ora = (lambda t: run.pose_at(t, "groundtruth")) if oracle == "ins" else None
     with Session(store, run.camera, run.T_vehicle_camera, method, oracle=ora) as s:
-        poses, covs, fixes = _feed(s, run, every)
+        poses, covs, fixes, states = _feed(s, run, every)
     v = np.asarray(result.valid, bool)
     assert v.any()
     assert np.array_equal(np.isfinite(poses[:, 0, 0]), v)
@@ -103,6 +104,13 @@ def test_session_frame_by_frame_is_the_replay(tiny_world, condition, method, ora
         assert f.integrity == "trusted" and f.inliers == result.inliers[i] and f.place == result.places[i]
         assert np.array_equal(f.pose, result.poses[i]) and f.covariance.shape == (6, 6)
         assert f.lateral_bound_95_m > 0
+    first = int(np.argmax(got))
+    if oracle == "none":        # no INS/GPS: searching until the first fix from the map, tracking after it
+        assert set(states[:first]) == {"searching"} and states[first] == "tracking"
+    else:
+        assert states[0] == "tracking"
+    assert set(states) <= {"searching", "tracking", "lost", "alert"}
+    assert ("alert" in states) == bool(np.any(result.integrity_alert))   # night signatures: the monitor alerts
 
 
 def _session(tiny_world, condition="overcast", method="orb", oracle="gnss", **kw):
@@ -151,6 +159,17 @@ def test_gnss_oracle_held_late_and_out_of_order_frames(tiny_world):
     est = s.pose()
     assert est.t == odo_t[k] and est.covariance.shape == (6, 6) and np.isfinite(est.lateral_bound_95_m)
     assert est.state in ("tracking", "lost")
+    s.close()
+    # out of order within the latency limit (here 0.6 s, two frames of this 4 Hz camera): localised at its time
+    s, run = _session(tiny_world, config={"max_latency_s": 0.6})
+    for t in run.groundtruth_times:
+        s.add_gnss(t, run.pose_at(t, "groundtruth"))
+    s.add_odometry(odo_t[0], np.eye(4))
+    for k in range(1, int(np.searchsorted(odo_t, ft[i + 2])) + 2):
+        s.add_odometry(odo_t[k], incs[k - 1])
+    s.add_image(ft[i + 2], run.image(i + 2))
+    s.add_image(ft[i + 1], run.image(i + 1))
+    assert s.last_frame.t == ft[i + 1] and s.frames_too_late == 0 and s.frames_dropped == 0
     s.close()
 
 

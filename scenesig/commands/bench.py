@@ -38,6 +38,7 @@ BENCHMARKS = {
     "relocalise": ("relocalise", "Global localisation cost per frame at 30, 100, 300 places."),
     "uncertainty": ("uncertainty", "Honesty of the localiser's 95-percent bounds on outputs with truth (coverage)."),
     "demo_localise": ("demo_localise", "The demo's localisation stage on a finished demo: wall and CPU time."),
+    "session": ("session", "Per-call latency of scenesig.Session.add_image (p50/p95/max, CPU) and a paced 5 Hz replay."),
     "hybrid_calibration": ("hybrid_calibration", "Per-type noise scales and the point-dominance count of the hybrid localiser, on runs not reported."),
 }
 
