@@ -1,5 +1,5 @@
-"""``scenesig import kitti-raw|kapture|tum-rgbd|euroc|rosbag|images`` and ``scenesig export kapture|rosbag``: the formats
-users hold.
+"""``scenesig import kitti-raw|kapture|tum-rgbd|euroc|rosbag|images`` and ``scenesig export kapture|rosbag``: the
+formats users hold.
 
 The parsers only; the work is in :mod:`scenesig.surveys.importers` (one module per format, conf dicts).
 Each import prints a JSON summary (run, frames, seconds, frames_per_second, gaps) on stdout.
