@@ -176,14 +176,21 @@ def recall_at(scores: np.ndarray, truth: np.ndarray, tolerance: int, max_n: int)
 
 
 # ---------------------------------------------------------------------------------- methods
-def _hog(ds, pr: Protocol, cfg: dict):
+def _cpu(timing: dict | None, c0: float) -> None:
+    """Record the CPU seconds since ``c0`` (all threads of the process) in ``timing["cpu"]``."""
+    if timing is not None:
+        timing["cpu"] = time.process_time() - c0
+
+
+def _hog(ds, pr: Protocol, cfg: dict, timing: dict | None = None):
     from scenesig.signatures import globaldesc
 
     dcfg = cfg.get("descriptor") or None
     M = np.stack([globaldesc.describe(_gray(ds, m), dcfg) for m in pr.map_images])
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     Q = np.stack([globaldesc.describe(_gray(ds, q), dcfg) for q in pr.queries])
     s = _per_place(Q @ M.T, np.array([m[0] for m in pr.map_images]), pr.places)
+    _cpu(timing, c0)
     return s, time.perf_counter() - t0, 0.0
 
 
@@ -195,10 +202,10 @@ def _thumb(img, size, patch):
     return b.reshape(h, w)
 
 
-def _seqslam(ds, pr: Protocol, cfg: dict):
+def _seqslam(ds, pr: Protocol, cfg: dict, timing: dict | None = None):
     c = cfg["seqslam"]
     M = np.stack([_thumb(_gray(ds, m), c["size"], c["patch"]).ravel() for m in pr.map_images])
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     Q = np.stack([_thumb(_gray(ds, q), c["size"], c["patch"]).ravel() for q in pr.queries])
     D = np.abs(Q[:, None, :] - M[None, :, :]).mean(axis=2)                  # (Q, M)
     D = -_per_place(-D, np.array([m[0] for m in pr.map_images]), pr.places)  # best image of a place
@@ -224,6 +231,7 @@ def _seqslam(ds, pr: Protocol, cfg: dict):
                 if ok.any():
                     best = min(best, float(E[q - k[ok], cols[ok]].mean()))
             S[q, p] = -best
+    _cpu(timing, c0)
     return S, time.perf_counter() - t0, 0.0
 
 
@@ -248,7 +256,7 @@ def _vlad_encode(d, centres):
     return v / (np.linalg.norm(v) + 1e-12)
 
 
-def _vlad(ds, pr: Protocol, cfg: dict):
+def _vlad(ds, pr: Protocol, cfg: dict, timing: dict | None = None):
     from sklearn.cluster import MiniBatchKMeans
 
     c = cfg["vlad"]
@@ -262,9 +270,10 @@ def _vlad(ds, pr: Protocol, cfg: dict):
     centres = km.fit(sample).cluster_centers_.astype(np.float32)
     M = np.stack([_vlad_encode(f, centres) for f in feats])
     t_map = time.perf_counter() - t_map
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     Q = np.stack([_vlad_encode(_vlad_features(_gray(ds, q), sift, int(c["width"])), centres) for q in pr.queries])
     s = _per_place(Q @ M.T, np.array([m[0] for m in pr.map_images]), pr.places)
+    _cpu(timing, c0)
     return s, time.perf_counter() - t0, t_map
 
 
@@ -272,7 +281,8 @@ def _mine(args):
     ds_root, place, train, live, hcfg = args
     from scenesig.signatures import heading
 
-    ds = load(ds_root)
+    # a GRIEF folder is passed by path (each worker reads it); any other data set object as it is
+    ds = load(ds_root) if isinstance(ds_root, (str, Path)) else ds_root
     bank, _, _, st = heading.train_bank(ds, place, train, live, hcfg)
     return place, bank, st
 
@@ -303,12 +313,14 @@ def _heading_config(cfg: dict) -> dict:
                           open=("mining", "single_experience"))
 
 
-def _verify(ds, pr: Protocol, cfg: dict, jobs: int = 1, progress: bool = True, banks_cache: dict | None = None):
+def _verify(ds, pr: Protocol, cfg: dict, jobs: int = 1, progress: bool = True, banks_cache: dict | None = None,
+            timing: dict | None = None):
     """Descriptor shortlist + bank verification of every query (module docstring).
 
     Returns ``(desc, verified, seconds, seconds_map)``: ``desc`` (Q, P) descriptor similarities (a
     place scores its best map image), ``verified`` (Q, P) the verification score of the shortlisted
-    places (share of vote weight in the densest window) and NaN elsewhere.
+    places (share of vote weight in the densest window) and NaN elsewhere.  ``timing``, when given,
+    receives the query side's CPU seconds (``"cpu"``).
     """
     from joblib import Parallel, delayed
 
@@ -333,7 +345,7 @@ def _verify(ds, pr: Protocol, cfg: dict, jobs: int = 1, progress: bool = True, b
         if train[p] and k not in banks_cache and f is not None and f.is_file():
             banks_cache[k] = pickle.loads(f.read_bytes())
     todo = [p for p in range(pr.places) if train[p] and (p, tuple(train[p]), pr.live) not in banks_cache]
-    tasks = [(str(ds.root), p, train[p], pr.live, hcfg) for p in todo]
+    tasks = [(str(ds.root) if isinstance(ds, GriefDataset) else ds, p, train[p], pr.live, hcfg) for p in todo]
     if tasks:
         gen = Parallel(n_jobs=jobs, return_as="generator")(delayed(_mine)(t) for t in tasks)
         if progress:
@@ -356,7 +368,7 @@ def _verify(ds, pr: Protocol, cfg: dict, jobs: int = 1, progress: bool = True, b
     ry = float(hcfg["live_search_y_px"]) * scale
     window = float(hcfg["vote_window_px"])
     K = shortlist_size(cfg["shortlist"], pr.places)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     desc = np.full((len(pr.queries), pr.places), -np.inf)
     V = np.full((len(pr.queries), pr.places), np.nan)
     for qi, q in enumerate(pr.queries):
@@ -381,6 +393,7 @@ def _verify(ds, pr: Protocol, cfg: dict, jobs: int = 1, progress: bool = True, b
             w = np.where(np.isfinite(votes), w, 0.0)
             _, inl = heading.vote_displacement(votes, w, window)
             V[qi, p] = float(w[inl].sum() / w.sum()) if w.sum() > 0 else 0.0
+    _cpu(timing, c0)
     return desc, V, time.perf_counter() - t0, t_map
 
 

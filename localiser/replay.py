@@ -1,6 +1,9 @@
 """Replay a survey run through the online localiser: ``scenesig localise MAP RUN --out DIR``.
 
-Two modes:
+The replay is a driver over :class:`scenesig.localiser.session.Session`, the per-frame step a robot drives
+(prior, detect, solve, integrity, search when lost): it reads the run's images and odometry from disk,
+feeds them in time order and records every frame (``tests/test_session.py`` holds its outputs to main's bytes
+before the step moved there).  Two modes:
 
 * **deterministic** (default): images and odometry are fed in timestamp order on one thread; the
   detector runs on every ``every``-th frame (4: 5 Hz on a 20 Hz camera, as in the paper) and the
@@ -61,14 +64,21 @@ from pathlib import Path
 import numpy as np
 
 from scenesig.mapping.store import MapStore
-from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.errors import CorruptImageError, DataError
 from scenesig.surveys.run import SurveyRun, read_run
+from scenesig.surveys.settings import merge_settings
 
-from .outputs import (FRAMES_COLUMNS, TIMING_KEYS, compute_metrics, map_relative_truth,  # noqa: F401  (re-exported)
-                      reference_path, write_outputs)
-from .methods import Measurement, WeakLocaliser, make_method
+from .methods import Measurement, WeakLocaliser
+from .outputs import (  # noqa: F401  (re-exported)
+    FRAMES_COLUMNS,
+    TIMING_KEYS,
+    compute_metrics,
+    map_relative_truth,
+    reference_path,
+    write_outputs,
+)
 from .pipeline import Localiser
+from .session import Session, _Job, check_layers
 
 log = logging.getLogger(__name__)
 
@@ -320,103 +330,61 @@ class _FramePrefetcher:
         self._pool.shutdown(wait=True)
 
 
-def _search(reloc, run: SurveyRun, i: int, t: float, img, rec: _Recorder, ms_prepare: float, monitor=None) -> None:
-    """Global search for frame i (not localised, no oracle): retrieval, verification, sequence check."""
-    raw = img if isinstance(img, np.ndarray) else run.image(i, gray=True)
-    r = reloc.search(img, t, raw)
-    accepted = r.accepted
-    if monitor is not None and monitor.searching(t, r.place, reloc.loc.distance_at(t), r.verified):
+def _record(rec: _Recorder, i: int, rep) -> None:
+    """What one frame's step (:class:`scenesig.localiser.session.FrameReport`) did, into the per-frame arrays."""
+    if rep.alert:
         with rec.lock:
             rec.alert[i] = True
-    if accepted and monitor is not None and monitor.active:
-        # a global fix is tentative until tracked frames confirm it (localiser.integrity)
-        monitor.begin_probation(t)
-        rec.probation_start = i
-        accepted = False
-        r.measurement.reason = "integrity_probation"
-    rec.measurement(i, r.place, r.measurement, accepted, ms_prepare + r.ms_retrieval + r.ms_detect, r.ms_solve)
+    if rep.withdrawn_from is not None:       # the integrity monitor refused the global fix these frames tracked
+        rec.discard(rep.withdrawn_from, i)
+    rec.measurement(i, rep.place, rep.measurement, rep.accepted, rep.ms_detect, rep.ms_solve)
 
 
-def _decide(loc: Localiser, monitor, rec: _Recorder, i: int, t: float, prior, m: Measurement) -> bool:
-    """The integrity monitor's verdict on a tracked frame's measurement, applied; True if accepted."""
-    if monitor is None or not monitor.active:
-        return loc.add_measurement(t, m)
-    from .integrity import frame_stats
-
-    verdict = monitor.assess(frame_stats(t, prior.place, prior, m))
-    if verdict == "accept":
-        rec.probation_start = None
-        return loc.add_measurement(t, m)
-    if verdict == "tentative":          # probation: tracks the tentative fix, not yet a localisation
-        loc.add_measurement(t, m)
-        if m.constraint is not None:
-            m.reason = "integrity_probation"
-        return False
-    m.reason = "integrity_alert"
-    with rec.lock:
-        rec.alert[i] = True
-    if verdict == "alert" and loc.oracle is None:
-        i0 = rec.probation_start
-        loc.discard(t, undo_fix=i0 is not None)
-        if i0 is not None:
-            rec.discard(i0, i)
-        rec.probation_start = None
-    return False
-
-
-def _run_method(method: WeakLocaliser, loc: Localiser, run: SurveyRun, i: int, t: float, rec: _Recorder,
-                frames: _FramePrefetcher | None = None, reloc=None, monitor=None) -> None:
-    """Detector + solver for frame i at time t (deterministic mode: inline); the global search instead
-    while a localiser without an oracle is not localised."""
+def _run_method(session: Session, run: SurveyRun, i: int, t: float, rec: _Recorder,
+                frames: _FramePrefetcher | None = None) -> None:
+    """The session's per-frame step for frame i at time t (deterministic mode: inline), the image from disk."""
     try:
         if frames is not None:
             img, ms_prepare = frames.get(i)
         else:
-            img, ms_prepare = run.image(i, gray=not method.color), 0.0
+            img, ms_prepare = run.image(i, gray=not session.method.color), 0.0
     except CorruptImageError as exc:
         rec.corrupt_frame(i, exc)
         return
-    if reloc is not None and loc.lost:
-        _search(reloc, run, i, t, img, rec, ms_prepare, monitor)
-        return
-    prior = loc.prior(t)
-    method.prefetch(prior.next_place)
-    t0 = time.perf_counter()
-    obs = method.detect(img, prior.place, prior)      # an image or its prepare() result
-    t1 = time.perf_counter()
-    m = Measurement.coerce(method.solve(obs, prior.place, prior))
-    t2 = time.perf_counter()
-    accepted = _decide(loc, monitor, rec, i, t, prior, m)
-    rec.measurement(i, prior.place, m, accepted, ms_prepare + 1e3 * (t1 - t0), 1e3 * (t2 - t1))
+    # the image (or its prepare() result) as the method wants it; the search's retrieval reads the grey one
+    session._frame(t, img, i, prepared=img, ms_prepare=ms_prepare, gray=lambda: run.image(i, gray=True))
+    _record(rec, i, session.last_frame)
 
 
-def _deterministic(method, loc, run, rec, every, progress, prefetch=True, reloc=None, monitor=None):
+def _deterministic(session: Session, run, rec, every, progress, prefetch=True):
     from tqdm import tqdm
 
     ft = rec.times
     odo_t = np.asarray(run.odometry_times, dtype=float)
     incs = run.odometry_increments()
     t_start = float(odo_t[0])
-    loc.start(t_start)
+    session.start(t_start)
+    loc = session.localiser
     n = len(ft)
     fi = 0
     bar = tqdm(total=n, desc=f"localise {run.name}", unit="frame", disable=not progress)
-    frames = _FramePrefetcher(run, method, range(0, n, every)) if prefetch else None
+    frames = _FramePrefetcher(run, session.method, range(0, n, every)) if prefetch else None
 
     def frame(i):
         t = max(float(ft[i]), t_start)       # frames before the first odometry: at the start pose
         if i % every == 0:
-            _run_method(method, loc, run, i, t, rec, frames, reloc, monitor)
+            _run_method(session, run, i, t, rec, frames)
         rec.pose(i, loc, t)
         bar.update(1)
 
     try:
         for k in range(1, len(odo_t)):
-            loc.add_odometry(float(odo_t[k]), incs[k - 1])
+            # the failure rule for sample k-1 runs first, after the frames up to its time (Session's rule)
+            session._odometry(float(odo_t[k]), incs[k - 1])
             while fi < n and ft[fi] <= odo_t[k]:
                 frame(fi)
                 fi += 1
-            loc.check_failure(float(odo_t[k]))
+        session.flush()                           # the failure rule for the last sample
         while fi < n:                             # frames after the last odometry sample
             frame(fi)
             fi += 1
@@ -426,16 +394,16 @@ def _deterministic(method, loc, run, rec, every, progress, prefetch=True, reloc=
         bar.close()
 
 
-def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=None, monitor=None):
+def _realtime(session: Session, run, rec, speed, progress, odometry_queue=10):
     from tqdm import tqdm
 
     ft = rec.times
     odo_t = np.asarray(run.odometry_times, dtype=float)
     incs = run.odometry_increments()
     t_start = float(odo_t[0])
-    loc.start(t_start)
+    session.start(t_start)
+    loc = session.localiser
     frames_box, solve_box = _Mailbox(), _Mailbox()
-    decide_lock = threading.Lock()      # the integrity monitor's state is shared by both threads
     errors: list[BaseException] = []
 
     def detector():
@@ -443,20 +411,17 @@ def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=N
             while (i := frames_box.get()) is not None:
                 t = max(float(ft[i]), t_start)
                 try:
-                    img = run.image(i, gray=not method.color)
+                    img = run.image(i, gray=not session.method.color)
                 except CorruptImageError as exc:
                     rec.corrupt_frame(i, exc)
                     continue
-                if reloc is not None and loc.lost:
-                    # not localised: the whole search (retrieval, verification, sequence check) here
-                    with decide_lock:
-                        _search(reloc, run, i, t, img, rec, 0.0, monitor)
-                    continue
-                prior = loc.prior(t)
-                method.prefetch(prior.next_place)
-                t0 = time.perf_counter()
-                obs = method.detect(img, prior.place, prior)   # detect() runs prepare() itself
-                solve_box.put((i, t, prior, obs, 1e3 * (time.perf_counter() - t0)))
+                # detect() runs prepare() itself; not localised: the whole search (retrieval, verification,
+                # sequence check) runs here and the frame is done
+                out = session._detect_stage(t, img, i, 0.0, lambda i=i: run.image(i, gray=True))
+                if isinstance(out, _Job):
+                    solve_box.put(out)
+                else:
+                    _record(rec, i, out)
         except BaseException as exc:  # surfaced on the main thread
             errors.append(exc)
         finally:
@@ -464,14 +429,8 @@ def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=N
 
     def solver():
         try:
-            while (item := solve_box.get()) is not None:
-                i, t, prior, obs, ms_det = item
-                t0 = time.perf_counter()
-                m = Measurement.coerce(method.solve(obs, prior.place, prior))
-                ms = 1e3 * (time.perf_counter() - t0)
-                with decide_lock:
-                    accepted = _decide(loc, monitor, rec, i, t, prior, m)
-                rec.measurement(i, prior.place, m, accepted, ms_det, ms)
+            while (job := solve_box.get()) is not None:
+                _record(rec, job.key, session._solve_stage(job))
         except BaseException as exc:
             errors.append(exc)
 
@@ -511,15 +470,15 @@ def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=N
                 coalesced += last - k
                 odo_next = last + 1
                 t = float(odo_t[last])
-                loc.add_odometry(t, inc)
+                session._odometry(t, inc)
                 while pending and ft[pending[0]] <= t:
                     i = pending.pop(0)
                     rec.pose(i, loc, max(float(ft[i]), t_start))
                     bar.update(1)
-                loc.check_failure(t)
             else:
                 pending.append(k)
                 frames_box.put(k)            # replaces a frame still waiting: a stale frame dropped
+        session.flush()
         for i in pending:
             rec.pose(i, loc, max(float(ft[i]), t_start))
             bar.update(1)
@@ -533,16 +492,15 @@ def _realtime(method, loc, run, rec, speed, progress, odometry_queue=10, reloc=N
     return {"frames_dropped": frames_box.dropped + solve_box.dropped, "frames_detected": frames_box.delivered,
             "odometry_queue_max": queue_max, "odometry_coalesced": coalesced, "lag_max_s": lag_max}
 
-
 def resolve_config(config: dict | None = None, method: str = "signatures") -> dict:
     """Every setting of a replay, resolved: ``config`` (overrides of :data:`default_config`) merged with
     the defaults of each stage it configures -- ``localiser`` (:data:`scenesig.localiser.pipeline.default_config`,
     its ``posegraph`` :data:`scenesig.localiser.posegraph.default_config`), ``relocalise``
     (:data:`scenesig.localiser.relocalise.default_config`) and ``method`` (:func:`method_settings`).  A misspelt
     key anywhere is a ``ValueError`` naming it."""
+    from .integrity import default_config as integrity_default
     from .pipeline import default_config as localiser_default
     from .posegraph import default_config as posegraph_default
-    from .integrity import default_config as integrity_default
     from .relocalise import default_config as relocalise_default
 
     cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise", "integrity"))
@@ -612,41 +570,30 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
         raise ValueError(f"speed must be > 0, got {speed}")
     _check_compatible(store, run)
     oracle_pose = _oracle(run) if oracle == "ins" else None     # a missing INS/GPS stops us before replaying
-    own = isinstance(method, str)
-    if own:
-        _check_layers(store, method)
-        method = make_method(method, store, run.camera, run.T_vehicle_camera, cfg["method"] or None)
-    loc = Localiser(store, oracle_pose, cfg["localiser"] or None)
-    reloc = None
-    if oracle == "none":
-        from .relocalise import Relocaliser
-
-        reloc = Relocaliser(store, method, loc, cfg["relocalise"] or None, retrieval=retrieval)
-    from .integrity import IntegrityMonitor
-
-    from .firing import load as load_firing
-
-    monitor = IntegrityMonitor(cfg["integrity"] or None, method.name, t0=float(run.odometry_times[0]),
-                               firing=load_firing(store))
+    # the per-frame step is the online Session's; frames reach it once the odometry covers them (no latency
+    # limit: a recorded run's odometry may be sparser than one detector period)
+    session = Session(store, run.camera, run.T_vehicle_camera, method, oracle=oracle_pose, retrieval=retrieval,
+                      config={"max_latency_s": None, **{k: cfg[k] for k in ("localiser", "method", "relocalise",
+                                                                              "integrity")}})
+    method, loc, reloc = session.method, session.localiser, session.relocaliser
     rec = _Recorder(run)
     extra = {}
     wall0 = time.perf_counter()
     cpu0 = time.process_time()        # every thread of the process: less load-sensitive than the wall time
     try:
         if realtime:
-            extra = _realtime(method, loc, run, rec, float(speed), progress, int(cfg["odometry_queue"]), reloc,
-                              monitor)
+            extra = _realtime(session, run, rec, float(speed), progress, int(cfg["odometry_queue"]))
         else:
-            _deterministic(method, loc, run, rec, every, progress, bool(cfg["prefetch"]), reloc, monitor)
+            _deterministic(session, run, rec, every, progress, bool(cfg["prefetch"]))
     finally:
-        if own:
-            method.close()
+        session.close()
     wall = time.perf_counter() - wall0
     cpu = time.process_time() - cpu0
-    if monitor.state == "probation" and rec.probation_start is not None:
-        # the run ended before the tracked frames confirmed the last global fix: it was never a localisation
-        loc.discard(float(rec.times[-1]), undo_fix=True)
-        rec.discard(rec.probation_start, len(rec.times) - 1, mark=False)
+    monitor = session.monitor
+    if len(rec.times):
+        k0 = session.end(float(rec.times[-1]))
+        if k0 is not None:      # the run ended before the tracked frames confirmed the last global fix
+            rec.discard(k0, len(rec.times) - 1, mark=False)
     resets = np.zeros(len(run), dtype=bool)
     if len(run):
         for tr in loc.reset_times:
@@ -690,21 +637,8 @@ def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
                     MIN_SIGNATURES, ", ".join(map(str, weak)))
 
 
-def _check_layers(store: MapStore, method: str) -> None:
-    """A method whose map layer the map lacks is an error naming the map, the layer and the fix."""
-    from scenesig.mapping.layers import method_layers, missing_layers, store_layers
-
-    try:
-        method_layers(method)
-    except ValueError:
-        return                     # a method registered by other code: it checks its own map data
-    have = store_layers(store)
-    missing = missing_layers(have, method)
-    if missing:
-        raise DataError(store.root / "manifest.json",
-                        f"method {method!r} needs the map layer {', '.join(missing)}, which this map lacks (it has "
-                        f"{', '.join(have)}); build the map with build-map --layers {','.join([*have, *missing])}, or "
-                        f"add it with scenesig map add-layers {store.root} --reference RUN --layers {','.join(missing)}")
+#: the layer check, kept under its old name (``scenesig.localiser.session.check_layers``)
+_check_layers = check_layers
 
 
 def _json_safe(obj):
@@ -766,6 +700,11 @@ def localise_run(map_root, run_root, method: str = "signatures", every: int = DE
                                       truth_poses=None, gps=None)
     else:
         run = read_run(run_root, skip=("groundtruth", "gps", "truth") if blind else ())
+    if run.odometry_source == "none":
+        # an image folder (scenesig import images): odometry.csv holds the identity, which is no motion
+        raise DataError((run.root or Path(run.name)) / "run.toml",
+                        "odometry_source is 'none' (an image-folder import): the localiser needs odometry; "
+                        "without it, match the run against reference traverses with scenesig bench sequence")
     if not blind:
         _oracle(run)          # no INS/GPS: say so before anything else (DataError naming groundtruth.tum)
     cam = check_camera(store, run, consistency=camera_check)

@@ -4,7 +4,8 @@ and the front door of the library:
 * :func:`scenesig.build_map` -- survey runs -> a map (the build summary);
 * :func:`scenesig.localise` -- a map and a run -> a :class:`scenesig.api.Localisation` in memory (times,
   poses, the per-frame table, ``metrics()``, ``write(dir)``);
-* :func:`scenesig.compare` -- a map, runs and methods -> one row of metrics per run and method.
+* :func:`scenesig.compare` -- a map, runs and methods -> one row of metrics per run and method;
+* :class:`scenesig.Session` -- the online localiser, frame by frame (odometry, GNSS, images as arrays).
 
 They are imported on first use (``import scenesig`` stays light).  The library packages below
 (``localiser`` → ``mapping`` → ``signatures`` → ``surveys``) expose plain functions and never import this
@@ -12,10 +13,14 @@ package; see ``docs/architecture.md`` and ``docs/api.md``.
 """
 from __future__ import annotations
 
-__all__ = ["build_map", "localise", "compare"]
+__all__ = ["build_map", "localise", "compare", "Session"]
 
 
 def __getattr__(name):
+    if name == "Session":
+        from scenesig.session import Session
+
+        return Session
     if name in __all__:
         from scenesig import api
 

@@ -34,6 +34,7 @@ COMMANDS = (
     "check",
     "aerial",
     "config",
+    "ros2",
 )
 
 #: second-level command groups (``scenesig GROUP ACTION``); a group appears once a command uses it
@@ -45,6 +46,7 @@ GROUPS = {
     "export": "Write results in other formats.",
     "aerial": "UAV image to satellite-map matching.",
     "config": "Settings: presets and every stage's resolved values.",
+    "ros2": "Run as a ROS 2 node (needs a ROS 2 install).",
 }
 
 

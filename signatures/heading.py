@@ -297,8 +297,10 @@ def train_bank(ds, place_index: int, train: list, live: int, cfg: dict):
     images = [_load(place, s, scale) for s in g.train]
     offsets = [[place.displacement(ref, s) * scale if s != ref else 0.0, 0.0] for s in g.train]
     map_offset = {s: o[0] for s, o in zip(g.train, offsets)}
-    if len(images) < int(mining.resolve_config(mcfg)["n_partitions"]):
-        # Too few appearances to partition: synthesised copies of the real images stand in.
+    if len(images) < 2 * int(mining.resolve_config(mcfg)["n_partitions"]):
+        # Too few appearances to partition: synthesised copies of the real images stand in.  The
+        # clustering starts from two images of the first partition (signatures.mining), so every
+        # partition needs two: with fewer real appearances (a map of 1-5 traverses) no shape would mine.
         images, offsets = synthesise(images, offsets, int(cfg["augment_copies"]), rng,
                                      float(cfg["augment_shift_px"]) * scale, exp["conditions"])
     offsets = np.asarray(offsets, dtype=float)

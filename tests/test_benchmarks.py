@@ -217,6 +217,30 @@ def test_demo_localise(tiny_world, tmp_path, capsys):
     assert doc["live_runs"] == [runs[2].name]
 
 
+def test_session(tiny_world, tmp_path, capsys):
+    """scenesig.Session's per-call latency on a demo-shaped folder of the tiny world (its night run, a few
+    frames, paced at the data's clock)."""
+    runs, root = tiny_world
+    demo = tmp_path / "demo"
+    (demo / "world").mkdir(parents=True)
+    for r in runs:
+        (demo / "world" / r.root.name).symlink_to(r.root)
+    (demo / "map").symlink_to(root)
+    (demo / "summary.json").write_text(json.dumps({"runs": [{"run": r.name} for r in runs[1:]]}))
+    doc = _run("session", [demo, "--conditions", "night", "--methods", "signatures,orb", "--detector-hz", "2",
+                           "--frames", "6", "--json", tmp_path / "s.json"], capsys, tmp_path / "s.json")
+    night = doc["runs"][runs[2].name]
+    assert night["every"] == 2 and night["image_size"] == [runs[2].camera.width, runs[2].camera.height]
+    for m in ("signatures", "orb"):
+        fast, paced = night[m]["unpaced"], night[m]["paced"]
+        assert fast["add_image_wall_ms"]["calls"] == fast["frames"] == 6 and fast["frames_held"] == 0
+        assert fast["add_image_cpu_ms"]["max"] > 0
+        assert 0 < fast["add_image_wall_ms"]["p50"] <= fast["add_image_wall_ms"]["max"]
+        assert paced["max_blocking_ms"] >= paced["add_image_wall_ms"]["max"]
+        assert paced["within_period"] == (paced["calls_over_period"] == 0)
+    assert doc["signatures_p95_ms_worst"] == night["signatures"]["unpaced"]["add_image_wall_ms"]["p95"]
+
+
 # -------------------------------------------------------------------------- a few real frames
 def test_kitti_import(tmp_path, capsys):
     drive = _shared("kitti", "2011_09_26_snippet")
@@ -327,3 +351,21 @@ def test_every_benchmark_has_a_smoke_test():
     missing = [name for name in BENCHMARKS if name.replace("_", "-") not in tested]
     assert not missing, f"benchmarks without a smoke test in tests/test_benchmarks.py: {missing}"
     assert np.isfinite(len(BENCHMARKS))
+
+
+def test_sequence(tiny_world, tmp_path, capsys):
+    """``bench sequence``: two simulated runs exported as frame-aligned image folders (``--export-sim``),
+    imported as ``scenesig import images`` does, scored with the cheap methods."""
+    from scenesig.surveys.importers.image_folder import import_image_folder
+
+    runs, _ = tiny_world
+    a, b = runs[0], runs[-1]
+    exp = _run("sequence", [a.root, b.root, "--export-sim", tmp_path / "folders", "--spacing", "6"], capsys)
+    assert exp["frames"] > 5 and max(exp["max_distance_to_reference_m"].values()) < 3.0
+    ref = import_image_folder(tmp_path / "folders" / a.name, tmp_path / "ref",
+                              {"hz": 1, "positions": tmp_path / "folders" / f"{a.name}_positions.csv"}, progress=False)
+    q = import_image_folder(tmp_path / "folders" / b.name, tmp_path / "q", {"hz": 1, "aligned_with": ref},
+                            progress=False)
+    doc = _run("sequence", [ref, "--query", q, "--methods", "hog,seqslam", "--json", tmp_path / "s.json"], capsys,
+               tmp_path / "s.json")
+    assert doc["frames"] == exp["frames"] and len(doc["matches"]["hog"]) == exp["frames"]

@@ -34,10 +34,12 @@ BENCHMARKS = {
     "profile_localise": ("profile_localise", "Where a deterministic replay spends its time, per stage."),
     "profile_mining": ("profile_mining", "Where one place's mining spends its time, per stage."),
     "places": ("places", "Place recognition on GRIEF data (recall@1, recall@5 per method)."),
+    "sequence": ("sequence", "Odometry-free sequence localisation: matched reference frame per query frame, recall@1 within +-N frames."),
     "relocalise": ("relocalise", "Global localisation cost per frame at 30, 100, 300 places."),
     "uncertainty": ("uncertainty", "Honesty of the localiser's 95-percent bounds on outputs with truth (coverage)."),
     "demo_localise": ("demo_localise", "The demo's localisation stage on a finished demo: wall and CPU time."),
     "integrity": ("integrity", "Integrity monitor on many simulated worlds: wrong maps refused, right maps silent."),
+    "session": ("session", "Per-call latency of scenesig.Session.add_image (p50/p95/max, CPU) and a paced 5 Hz replay."),
     "hybrid_calibration": ("hybrid_calibration", "Per-type noise scales and the point-dominance count of the hybrid localiser, on runs not reported."),
 }
 

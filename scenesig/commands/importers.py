@@ -1,5 +1,5 @@
-"""``scenesig import kitti-raw|kapture|tum-rgbd|euroc|rosbag`` and ``scenesig export kapture|rosbag``: the formats
-users hold.
+"""``scenesig import kitti-raw|kapture|tum-rgbd|euroc|rosbag|images`` and ``scenesig export kapture|rosbag``: the
+formats users hold.
 
 The parsers only; the work is in :mod:`scenesig.surveys.importers` (one module per format, conf dicts).
 Each import prints a JSON summary (run, frames, seconds, frames_per_second, gaps) on stdout.
@@ -15,6 +15,16 @@ def _noise(text: str) -> float:
     v = float(text)
     if not v >= 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0 < v < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
     return v
 
 
@@ -108,6 +118,29 @@ def register(groups) -> None:
                     help="leave out (and count) image messages that do not decode, instead of stopping")
     _common(rb, _DRIFT + "the odometry topic as it is", out_required=False)
     rb.set_defaults(_run=run_rosbag, _parser=rb)
+
+    im = imp.add_parser("images", help="an ordered image folder (no odometry, no truth)",
+                        description="Import an ordered folder of images (natural order of the file names) as a survey "
+                                    "run without odometry: frame i at i / HZ seconds. Localised by place recognition "
+                                    "with sequence constraints (scenesig bench sequence); see docs/sequences.md.")
+    im.add_argument("folder", metavar="FOLDER")
+    im.add_argument("--hz", type=_positive, required=True, metavar="H", help="frame rate of the sequence (Hz)")
+    im.add_argument("--positions", default=None, metavar="CSV",
+                    help="per-frame positions, header frame,x,y[,z] or file,x,y[,z] (metres) -> gps.csv, and "
+                         "groundtruth.tum when every frame has one")
+    im.add_argument("--aligned-with", default=None, metavar="RUN",
+                    help="an imported run of the same route whose frame i is this run's frame i (the evaluation "
+                         "truth of traverses without positions)")
+    im.add_argument("--intrinsics", type=_numbers((4, 8, 9)), default=None, metavar="fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]",
+                    help="camera calibration (default: a pinhole of --hfov degrees, recorded as assumed)")
+    im.add_argument("--hfov", type=_positive, default=60.0, metavar="DEG",
+                    help="assumed horizontal field of view without --intrinsics (default 60)")
+    im.add_argument("--out", required=True, metavar="RUN", help="survey-run folder to write (atomically)")
+    im.add_argument("--name", default=None, help="run name (default: the folder's name)")
+    im.add_argument("--conditions", type=_conditions, default=None, metavar="TAG[,TAG]",
+                    help="condition tags for run.toml, e.g. winter,snow")
+    im.add_argument("--overwrite", action="store_true", help="replace RUN if it exists (default: refuse)")
+    im.set_defaults(_run=run_images)
 
     x = exp.add_parser("kapture", help="a survey run as a kapture folder (text format 1.1)",
                        description="Export a survey run as kapture: sensors, rigs, trajectories, records_camera, "
@@ -211,6 +244,26 @@ def run_euroc(args) -> int:
     from scenesig.surveys.importers.euroc import import_euroc
 
     return _summary(import_euroc, args.folder, args, _conf(args, camera=args.camera))
+
+
+def run_images(args) -> int:
+    from scenesig.surveys.importers.image_folder import import_image_folder
+    from scenesig.surveys.run import read_run
+
+    _refuse_existing(args.out, args.overwrite)
+    conf = {"hz": args.hz, "name": args.name, "positions": args.positions, "aligned_with": args.aligned_with,
+            "intrinsics": args.intrinsics, "hfov_deg": args.hfov}
+    if args.conditions is not None:
+        conf["conditions"] = args.conditions
+    t0 = time.perf_counter()
+    out = import_image_folder(args.folder, args.out, conf, overwrite=args.overwrite)
+    seconds = time.perf_counter() - t0
+    run = read_run(out, check_images=False)
+    print(json.dumps({"run": str(out), "name": run.name, "frames": len(run), "seconds": round(seconds, 3),
+                      "frames_per_second": round(len(run) / seconds, 1), "odometry_source": run.odometry_source,
+                      "ignored_files": run.metadata.get("ignored_files", 0),
+                      "positions": run.gps is not None, "aligned_with": run.metadata.get("aligned_with")}, indent=1))
+    return 0
 
 
 def run_export_kapture(args) -> int:

@@ -54,7 +54,7 @@ from ..settings import merge_settings
 from .common import find_gaps, odometry_from_groundtruth, odometry_note, odometry_with_noise, \
     ticks_to_seconds
 
-__all__ = ["default_config", "require_rosbags", "bag_paths", "bag_format", "list_topics", "suggest_arguments",
+__all__ = ["default_config", "require_rosbags", "camera_from_info", "bag_paths", "bag_format", "list_topics", "suggest_arguments",
            "load_rosbag", "import_rosbag", "write_run_bag", "export_trajectory_bag", "read_bag_poses",
            "read_pose_covariances", "raw_image", "IMAGE", "COMPRESSED_IMAGE", "CAMERA_INFO", "ODOMETRY",
            "POSE_STAMPED", "POSE_COV_STAMPED", "TRANSFORM_STAMPED", "TF_MESSAGE", "FORMATS"]
@@ -439,6 +439,12 @@ def _check_topic(path: Path, topics: dict, topic: str | None, types: tuple, what
     if needed and not topics[topic].msgcount:
         raise DataError(path, f"topic {topic!r} ({what}) has no messages")
     return t
+
+
+def camera_from_info(msg, path, topic: str, rectified: bool = False) -> Camera:
+    """A ``sensor_msgs/CameraInfo`` message as a :class:`Camera` (P when ``rectified``, else K and D);
+    :class:`DataError` naming ``path`` and ``topic`` when it holds no usable calibration."""
+    return _camera_from_info(msg, Path(path), topic, rectified)
 
 
 def _camera_from_info(msg, path: Path, topic: str, rectified: bool) -> Camera:
