@@ -29,8 +29,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from scenesig.aerial.trials import (GEOMETRY, Trial, _affine, _footprint_margin, photometric_change,
-                                    sensed_centre)
+from scenesig.aerial.trials import GEOMETRY, Trial, _affine, _footprint_margin, photometric_change, sensed_centre
 from scenesig.surveys.settings import merge_settings
 
 __all__ = ["DEFORM", "RECOLOUR", "VariantTrial", "make_trial_variant", "Deformation", "recolour"]

@@ -62,7 +62,7 @@ default_config = {
     "ransac_px": 3.0,
     "ransac_iters": 2000,
     "min_inliers": 6,
-    "kdm_gates_px": (12.0, 5.0),    # matches within these of the affine, then of the first KDM map, fit phi
+    "kdm_gates_px": (8.0, 3.0),     # matches within these of the affine, then of the first KDM map, fit phi
     "hypotheses": 3,                # sequential-RANSAC models the domain stage scores
     "kdm": {},                      # overrides of aerial.kdm.default_config
     "kdmm": {},                     # overrides of aerial.kdmm.default_config
@@ -202,7 +202,8 @@ class PSDMatcher:
 
     def _ransac(self, src, dst, centre):
         cfg = self.config
-        return ransac_affine(src, dst, centre, float(cfg["ransac_px"]), int(cfg["min_inliers"]), int(cfg["ransac_iters"]))
+        return ransac_affine(src, dst, centre, float(cfg["ransac_px"]), int(cfg["min_inliers"]),
+                             int(cfg["ransac_iters"]))
 
     def _kdm(self, A, src, dst):
         """KDM on the matches gated by ``A`` (set stage); returns ``(phi, rms, inliers of A o phi)``."""
