@@ -200,16 +200,16 @@ def domain_dissimilarity(sensed: np.ndarray, reference: np.ndarray, valid: np.nd
     return float(np.average(d[:k], weights=w[:k]))
 
 
-def warp_reference(tile: np.ndarray, to_tile, shape, scale: float) -> tuple[np.ndarray, np.ndarray]:
+def warp_reference(tile: np.ndarray, to_tile, shape, scale: float, step: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """The map under the sensed image: for each pixel of the sensed image scaled by ``scale`` (shape
     ``(h, w)``), the tile's colour where ``to_tile`` puts it (bilinear), and whether that is on the tile.
 
-    ``to_tile`` maps full-resolution sensed pixels to tile pixels; it is evaluated on a grid every 4
-    work pixels and interpolated bilinearly (the maps fitted here are smooth at that scale).  ``tile``
+    ``to_tile`` maps full-resolution sensed pixels to tile pixels; it is evaluated on a grid every ``step``
+    work pixels and interpolated bilinearly (the maps fitted here are smooth at that scale: kernels of 40 px
+    and more; a KDM map is costly to evaluate densely).  ``tile``
     should already be low-passed for ``scale`` (the sensed image was area-averaged).
     """
     h, w = shape
-    step = 4
     gy, gx = np.arange(0, h + step, step, dtype=float), np.arange(0, w + step, step, dtype=float)
     X, Y = np.meshgrid(gx, gy)
     off = (1.0 / scale - 1.0) / 2.0                                   # work pixel -> full-resolution pixel

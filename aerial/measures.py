@@ -103,7 +103,7 @@ def _warp_gray(tile, to_tile, image_shape, sensed_centre):
         cx, cy = to_tile[1]
         off = np.array([cx, cy]) - np.asarray(sensed_centre)
         to_tile = lambda xy, off=off: np.asarray(xy, float) + off        # noqa: E731
-    ref, valid = warp_reference(tile, to_tile, image_shape[:2], 1.0)
+    ref, valid = warp_reference(tile, to_tile, image_shape[:2], 1.0, step=16)
     g = cv2.cvtColor(ref, cv2.COLOR_BGR2GRAY) if ref.ndim == 3 else ref
     return g.astype(np.float64), valid
 

@@ -195,10 +195,12 @@ class PSDMatcher:
 
     # ---------------------------------------------------------------- stages
     def _matches(self, desc, min_cossim):
+        """Eq. 5: mutual nearest neighbours by inner product; ``(ia, ib, similarity)`` of all mutual pairs
+        (one similarity matrix serves every threshold) and the mask of those above ``min_cossim``."""
         from scenesig.signatures.xfeat import match_mnn
 
-        ia, ib, _ = match_mnn(desc, self.ref_desc_, float(min_cossim))
-        return ia, ib
+        ia, ib, s = match_mnn(desc, self.ref_desc_, -2.0)
+        return ia, ib, s > float(min_cossim)
 
     def _ransac(self, src, dst, centre):
         cfg = self.config
@@ -242,7 +244,8 @@ class PSDMatcher:
         cfg = self.config
         xy, desc, det_s, cached = self.store_.get(sensed, int(cfg["sensed_features"]))
         t1 = time.process_time()
-        ia, ib = self._matches(desc, cfg["min_cossim"])
+        ja, jb, keep = self._matches(desc, cfg["min_cossim"])
+        ia, ib = ja[keep], jb[keep]
         match_s = time.process_time() - t1
         c = sensed_centre(sensed.shape)
         src, dst = xy[ia].astype(float), self.ref_xy_[ib].astype(float)
@@ -263,7 +266,6 @@ class PSDMatcher:
             return PSDEstimate(f(c[None])[0], est.transform, inl, len(src), est.scale, est.rotation_deg,
                                score=float(inl), kdm_rms=rms, to_tile=f, **base)
         # domain stage: every hypothesis refined by KDM, scored by the region dissimilarity
-        ja, jb = self._matches(desc, -2.0)
         hyps = self._hypotheses(src, dst, xy[ja].astype(float), self.ref_xy_[jb].astype(float), c)
         kc = self.kdmm_config
         s = float(kc["work_scale"])
