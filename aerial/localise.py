@@ -74,7 +74,8 @@ def _verdict(loc, tile, sensed_shape, min_ncc: float, min_coverage: float) -> tu
     return True, cov, ""
 
 
-def _read_truth(path: Path) -> dict:
+def _read_truth(path: Path, tiles: dict | None = None) -> dict:
+    """``{image: (lat, lon)}``; the optional ``tile`` column goes into ``tiles`` (``{image: tile name}``)."""
     truth = {}
     with open(path, newline="") as f:
         for line, row in enumerate(csv.DictReader(f), start=2):
@@ -82,12 +83,18 @@ def _read_truth(path: Path) -> dict:
                 truth[row["image"]] = (float(row["lat"]), float(row["lon"]))
             except (KeyError, TypeError, ValueError):
                 raise DataError(path, "expected columns image, lat, lon with numbers", line) from None
+            if tiles is not None and row.get("tile"):
+                tiles[row["image"]] = row["tile"]
     return truth
+
+
+#: Methods ``localise_sequence`` can use: MRSM-CC, or a point-set-domain stage (:mod:`scenesig.aerial.psd`).
+LOCALISE_METHODS = ("mrsmcc", "psd-point", "psd-kdm", "psd-kdmm")
 
 
 def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m: float = 30.0,
                       config: dict | None = None, min_ncc: float = 0.2, min_coverage: float = 0.5,
-                      progress: bool = True) -> dict:
+                      progress: bool = True, method: str = "mrsmcc", psd_config: dict | None = None) -> dict:
     """Localise every image of ``images_dir`` (sorted by name) on the tiles of ``tiles_dir``.
 
     Parameters
@@ -112,6 +119,14 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
         Share of the sensed image that must lie on the chosen tile under the estimate; less, and it is
         not a localisation (the image is off the tile, or outside every tile).
     progress : bool
+    method : {"mrsmcc", "psd-point", "psd-kdm", "psd-kdmm"}
+        ``psd-*``: the point-set-domain stage (:class:`scenesig.aerial.psd.PSDMatcher`) is run on every tile
+        and the tile with the best match score wins (for ``psd-kdmm`` the lowest region dissimilarity,
+        the seed's decision); the prior is not used.  An estimate is a localisation when its footprint
+        covers ``min_coverage`` of the tile.  ``track.csv`` then adds ``score``; with a ``tile`` column
+        in ``truth.csv`` the summary counts ``right_tile``.
+    psd_config : dict, optional
+        Overrides of :data:`scenesig.aerial.psd.default_config` (e.g. the XFeat model file).
 
     Returns
     -------
@@ -120,6 +135,8 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
     """
     from scenesig.aerial.mrsmcc import default_config as mrsmcc_config
 
+    if method not in LOCALISE_METHODS:
+        raise ValueError(f"unknown localise method {method!r}; choose from {', '.join(LOCALISE_METHODS)}")
     tiles = load_tiles(tiles_dir)
     search_ncc = float(merge_settings(mrsmcc_config, config, "MR-SMCC")["attitude_min_ncc"])
     images_dir, out = Path(images_dir), Path(out_dir)
@@ -128,10 +145,17 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
     names = sorted(p for p in images_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not names:
         raise DataError(images_dir, f"no images ({', '.join(IMAGE_SUFFIXES)})")
-    truth = _read_truth(images_dir / "truth.csv") if (images_dir / "truth.csv").is_file() else {}
+    truth_tiles: dict = {}
+    truth = _read_truth(images_dir / "truth.csv", truth_tiles) if (images_dir / "truth.csv").is_file() else {}
     out.mkdir(parents=True, exist_ok=True)
     images = [t.image() for t in tiles]
-    landmarks = LandmarkModel().fit(images)
+    psd = method != "mrsmcc"
+    if psd:
+        from scenesig.aerial.psd import PSDMatcher
+
+        pcfg = {**(psd_config or {}), "stage": method.split("-", 1)[1]}
+        matchers = [PSDMatcher(pcfg).fit(im) for im in images]
+    landmarks = None if psd else LandmarkModel().fit(images)
     ests: dict[int, MRSMCC] = {}
 
     def est(i):
@@ -149,6 +173,9 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
         if img is None:
             raise DataError(path, "cannot read or decode image")
         t0 = time.perf_counter()
+        if psd:
+            rows.append(_locate_psd(matchers, tiles, img, path.name, truth, t0, min_coverage))
+            continue
         tile = tiles.tile_at(last) if last is not None else None
         cands = []
         if tile is not None:
@@ -186,7 +213,7 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
             else:
                 row["error_m"] = float("nan")
         rows.append(row)
-    cols = list(COLUMNS) + (["error_m"] if truth else [])
+    cols = list(COLUMNS) + (["score"] if psd else []) + (["error_m"] if truth else [])
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=cols)
     w.writeheader()
@@ -208,12 +235,46 @@ def localise_sequence(tiles_dir, images_dir, out_dir, prior=None, prior_radius_m
         logging.getLogger(__name__).warning(
             "%d of %d images not localised (no tile covers them, or the match failed its checks), e.g. %s: %s",
             len(missed), len(rows), missed[0]["image"], missed[0]["reason"])
+    if psd:
+        summary["method"] = method
+    if truth_tiles:
+        summary["right_tile"] = int(sum(r["tile"] == truth_tiles.get(r["image"]) for r in rows if r["localised"]))
     if truth:
         err = np.array([r["error_m"] for r in rows], float)
         summary["median_error_m"] = float(np.nanmedian(err)) if np.isfinite(err).any() else None
         summary["within_10m"] = float(np.mean(np.nan_to_num(err, nan=np.inf) <= 10.0))
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1) + "\n")
     return summary
+
+
+def _locate_psd(matchers, tiles, img, name, truth, t0, min_coverage) -> dict:
+    """One image by a point-set-domain stage on every tile: the best match score picks the tile."""
+    locs = [m.locate(img) for m in matchers]
+    ti = max(range(len(locs)), key=lambda i: locs[i].score)
+    loc, tile = locs[ti], tiles[ti]
+    row = {"image": name, "tile": tile.name}
+    ok = bool(np.all(np.isfinite(loc.centre)) and np.isfinite(loc.score))
+    cov = footprint_coverage(loc.transform, img.shape, tile.size or tile.image().shape[1::-1]) if ok else 0.0
+    reason = "" if ok and cov >= min_coverage else (
+        f"no estimate on any tile (best: {tile.name})" if not ok else
+        f"best match on tile {tile.name} fails its checks: only {100 * cov:.0f} % of the image would lie on it")
+    ok = ok and cov >= min_coverage
+    if ok:
+        ll = tile.pixel_to_latlon(loc.centre)
+        en = tiles.latlon_to_local(ll)
+        row.update(x_px=loc.centre[0], y_px=loc.centre[1], lat=ll[0], lon=ll[1], east_m=en[0], north_m=en[1],
+                   scale=loc.scale, rotation_deg=loc.rotation_deg)
+    else:
+        row.update({k: float("nan") for k in COLUMNS[2:10]})
+    row.update(method=loc.stage, ncc=float("nan"), seconds=time.perf_counter() - t0, localised=int(ok), coverage=cov,
+               reason=reason, score=loc.score)
+    if truth:
+        if name in truth and np.isfinite(row["lat"]):
+            d = tiles.latlon_to_local(np.array([row["lat"], row["lon"]])) - tiles.latlon_to_local(np.array(truth[name]))
+            row["error_m"] = float(np.hypot(*d))
+        else:
+            row["error_m"] = float("nan")
+    return row
 
 
 def _plot_track(tiles, rows, truth, path: Path) -> None:

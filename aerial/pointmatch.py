@@ -33,6 +33,10 @@ default_config = {
     "ransac_px": 3.0,               # RANSAC reprojection threshold
     "ransac_iters": 2000,
     "min_inliers": 6,               # fewer: no estimate
+    # match filter: None = the kind's own (XFeat's matcher, else Lowe's ratio); "dapc" (the M2Det scene-matching
+    # paper's adaptive distance test, seed 002) or "gms" (grid-based motion statistics, seed 004), both on
+    # mutual nearest neighbours as those seeds match
+    "filter": None,
 }
 
 
@@ -53,15 +57,25 @@ class PointMatcher:
 
     def locate(self, sensed: np.ndarray) -> AffineEstimate:
         """Where the sensed image's centre lies on the reference."""
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         cfg = self.config
         feats = self._extract(sensed, cfg["sensed_features"])
-        if cfg["kind"] == "xfeat":
+        c1 = time.process_time()
+        if cfg["filter"] in ("dapc", "gms"):
+            m = pf.match(feats, self.reference_, filter=cfg["filter"], mutual=True)
+        elif cfg["filter"] is not None:
+            raise ValueError(f"point-matcher filter must be None, 'dapc' or 'gms', got {cfg['filter']!r}")
+        elif cfg["kind"] == "xfeat":
             m = pf.match(feats, self.reference_, filter="cossim", mutual=True, min_cossim=float(cfg["min_cossim"]))
         else:
             m = pf.match(feats, self.reference_, filter="ratio", ratio=float(cfg["ratio"]))
+        c2 = time.process_time()
         est = ransac_affine(feats.xy[m.query], self.reference_.xy[m.train],
                             sensed_centre(sensed.shape), float(cfg["ransac_px"]),
                             int(cfg["min_inliers"]), int(cfg["ransac_iters"]))
         est.seconds = time.perf_counter() - t0
+        # what the seeds' measures read (matched pairs, putative match ratio, RPR ... RT)
+        est.matched_pairs, est.keypoints = len(m), len(feats)
+        est.point_data = {"sensed_xy": feats.xy, "tile_xy": self.reference_.xy, "query": m.query, "train": m.train,
+                          "detect_seconds": c1 - c0, "match_seconds": c2 - c1}
         return est

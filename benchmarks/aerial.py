@@ -7,7 +7,12 @@ that tile, and a trial succeeds when the estimate is within 25 px (the paper's c
 
 Methods: ``mrsmcc`` (MRSM-CC), ``mrsm`` (the same without colour constancy), ``sism`` (whole-image
 NCC), ``sift`` / ``orb`` (ratio 0.8 + RANSAC affine), ``signatures`` (a bank mined per tile from
-augmented copies, detections + RANSAC affine).
+augmented copies, detections + RANSAC affine); ``psd-point`` / ``psd-kdm`` / ``psd-kdmm`` (the
+point-set-domain seed's three stages, :mod:`scenesig.aerial.psd`) and ``xfeat-dapc`` / ``xfeat-gms`` /
+``sift-dapc`` / ``sift-gms`` (seeds 002 / 004's match filters), which add ``matched_pairs`` and
+``putative_match_ratio``.  ``--deform`` / ``--recolour`` draw deformed / recoloured trials
+(:mod:`scenesig.aerial.deform`; the default trials are unchanged); ``--measures`` adds the
+point-set-domain seed's measures (``benchmarks/_aerial_measures.py``).
 
 JSON (stdout and ``--json OUT``)::
 
@@ -54,7 +59,13 @@ import numpy as np
 
 from scenesig.surveys.io import atomic_path, atomic_write_text
 
-METHODS = ("mrsmcc", "mrsm", "sism", "sift", "orb", "xfeat", "signatures")
+METHODS = ("mrsmcc", "mrsm", "sism", "sift", "orb", "xfeat", "signatures",
+           "psd-point", "psd-kdm", "psd-kdmm", "xfeat-dapc", "xfeat-gms", "sift-dapc", "sift-gms")
+#: Point-set-domain stages (:mod:`scenesig.aerial.psd`) and the point matchers with seeds 002 / 004's filters:
+#: they always report matched pairs and the putative match ratio (every method does with ``--measures``).
+PSD_METHODS = {"psd-point": "point", "psd-kdm": "kdm", "psd-kdmm": "kdmm"}
+FILTER_METHODS = {"xfeat-dapc": ("xfeat", "dapc"), "xfeat-gms": ("xfeat", "gms"),
+                  "sift-dapc": ("sift", "dapc"), "sift-gms": ("sift", "gms")}
 SUCCESS_PX = 25.0
 
 
@@ -91,15 +102,21 @@ SEARCH = {
     "orb": [{"ratio": 0.7}, {"ratio": 0.8}, {"ratio": 0.9}],
     "signatures": [{"min_prob": 0.2}, {"min_prob": 0.3}, {"min_prob": 0.5}],
     "xfeat": [{}],      # its authors' matcher and settings (Potje et al. 2024): nothing to choose
+    # point-set-domain: the settings the seed leaves open (docs/aerial.md: the defaults were chosen on seed 0)
+    "psd-point": [{}, {"min_cossim": 0.75}],
+    "psd-kdm": [{}, {"kdm": {"rho": 3.0}}, {"kdm": {"scales_px": (80.0, 160.0, 320.0)}}],
+    "psd-kdmm": [{}, {"kdmm": {"delta": 1}}, {"kdmm": {"keep_fraction": 0.75}}],
+    "xfeat-dapc": [{}], "xfeat-gms": [{}], "sift-dapc": [{}], "sift-gms": [{}],   # the seeds' filters as published
 }
 
 
 def method_defaults(method: str) -> dict:
     """A method's ``default_config`` (the module that holds its settings)."""
-    from scenesig.aerial import mrsmcc, pointmatch, signatures, sism
+    from scenesig.aerial import mrsmcc, pointmatch, psd, signatures, sism
 
     module = {"mrsmcc": mrsmcc, "mrsm": mrsmcc, "sism": sism, "sift": pointmatch, "orb": pointmatch,
-              "xfeat": pointmatch, "signatures": signatures}[method]
+              "xfeat": pointmatch, "signatures": signatures, **dict.fromkeys(PSD_METHODS, psd),
+              **dict.fromkeys(FILTER_METHODS, pointmatch)}[method]
     return module.default_config
 
 
@@ -119,7 +136,7 @@ def searched_defaults(method: str) -> dict:
     return {k: defaults[k] for k in keys}
 
 
-def _setup(method: str, images, landmarks, cache_dir, config: dict | None = None):
+def _setup(method: str, images, landmarks, cache_dir, config: dict | None = None, feature_cache=None):
     """One fitted estimator per tile; returns (list, CPU seconds).  ``config`` overrides the
     method's settings."""
     from scenesig.aerial.mrsmcc import MRSMCC
@@ -142,16 +159,34 @@ def _setup(method: str, images, landmarks, cache_dir, config: dict | None = None
         ests = [PointMatcher({**config, "kind": "xfeat", "xfeat": {"model": xfeat_model()}}).fit(im) for im in images]
     elif method == "signatures":
         ests = [SignatureMatcher(config, cache_dir=cache_dir).fit(im) for im in images]
+    elif method in PSD_METHODS:
+        from scenesig.aerial.psd import PSDMatcher
+        from scenesig.benchmarks._models import xfeat_model
+
+        cfg = {**config, "stage": PSD_METHODS[method], "xfeat": {"model": xfeat_model()}, "cache": feature_cache}
+        ests = [PSDMatcher(cfg).fit(im) for im in images]
+    elif method in FILTER_METHODS:
+        kind, filt = FILTER_METHODS[method]
+        cfg = {**config, "kind": kind, "filter": filt}
+        if kind == "xfeat":
+            from scenesig.benchmarks._models import xfeat_model
+
+            cfg["xfeat"] = {"model": xfeat_model()}
+        ests = [PointMatcher(cfg).fit(im) for im in images]
     else:
         raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     return ests, time.process_time() - t0
 
 
-def _run_trials(ests: dict, images, indices, seed: int, tile_names, progress=None):
+def _run_trials(ests: dict, images, indices, seed: int, tile_names, progress=None, protocol=None,
+                collector=None, results=None):
     """Run every method's estimators on trials ``indices`` of ``seed`` drawn over ``images``.
 
-    Returns ``(errors, seconds, rows)``: per method lists of errors (px; inf = no estimate) and CPU
-    seconds, and the per-trial rows of ``trials.csv``.
+    ``protocol`` = ``{"deform": bool, "recolour": bool}`` draws the variant trials
+    (:func:`scenesig.aerial.deform.make_trial_variant`); ``collector`` (``--measures``) also runs each
+    trial's impostor pair and records the seed's measures; ``results`` (dict of lists) receives the
+    estimates.  Returns ``(errors, seconds, rows)``: per method lists of errors (px; inf = no estimate)
+    and CPU seconds, and the per-trial rows of ``trials.csv``.
     """
     import cv2
 
@@ -160,19 +195,29 @@ def _run_trials(ests: dict, images, indices, seed: int, tile_names, progress=Non
     errors = {m: [] for m in ests}
     secs = {m: [] for m in ests}
     rows = []
+    variant = bool(protocol) and any(protocol.values())
+    if variant:
+        from scenesig.aerial.deform import make_trial_variant
     for k in indices:
-        tr = make_trial(images, k, seed)
+        tr = (make_trial_variant(images, k, seed, bool(protocol.get("deform")), bool(protocol.get("recolour")))
+              if variant else make_trial(images, k, seed))
         row = {"trial": k, "tile": tile_names[tr.tile], "x": tr.centre[0], "y": tr.centre[1],
                "scale": tr.scale, "rotation_deg": tr.rotation_deg}
         for m in ests:
             cv2.setRNGSeed(int(seed) * 100003 + k)          # RANSAC repeats for a seed
             t1 = time.process_time()
             res = ests[m][tr.tile].locate(tr.image)
-            secs[m].append(time.process_time() - t1)
+            # a feature extraction read from the disk cache counts at its recorded CPU time
+            secs[m].append(time.process_time() - t1 + float(getattr(res, "extra_seconds", 0.0)))
             c = np.asarray(res.centre, float)
             err = float(np.linalg.norm(c - tr.centre)) if np.all(np.isfinite(c)) else np.inf
             errors[m].append(err)
             row[f"{m}_x"], row[f"{m}_y"], row[f"{m}_error_px"] = c[0], c[1], err
+            if results is not None:
+                results.setdefault(m, []).append(res)
+            if collector is not None:
+                rec = collector.add(m, tr, res, ests[m])
+                row[f"{m}_score"], row[f"{m}_impostor_score"] = rec["score_genuine"], rec["score_impostor"]
         rows.append(row)
         if progress is not None:
             progress.update(1)
@@ -206,17 +251,20 @@ def summarise(errors: np.ndarray, seconds: np.ndarray) -> dict:
             "seconds_per_trial": float(np.mean(seconds)) if len(seconds) else None}
 
 
-def _search(methods, images, names, landmarks, cache_dir, search_trials: int, search_seed: int, bar=None):
-    """Every method's :data:`SEARCH` on ``search_trials`` trials of ``search_seed`` over ``images``;
-    returns ``(search, chosen)``: per method every candidate's figures, and the one :func:`choose` keeps."""
+def _search(methods, images, names, landmarks, cache_dir, search_trials: int, search_seed: int, bar=None,
+            protocol=None, feature_cache=None):
+    """Every method's :data:`SEARCH` on ``search_trials`` trials of ``search_seed`` over ``images``
+    (deformed / recoloured as ``protocol`` says); returns ``(search, chosen)``: per method every
+    candidate's figures, and the one :func:`choose` keeps."""
     search, chosen = {}, {}
     for m in methods:
         cands = SEARCH[m]
         res = []
         if len(cands) > 1:
             for c in cands:
-                ests_c, _ = _setup(m, images, landmarks, cache_dir, c)
-                e, sc, _ = _run_trials({m: ests_c}, images, range(int(search_trials)), search_seed, names)
+                ests_c, _ = _setup(m, images, landmarks, cache_dir, c, feature_cache)
+                e, sc, _ = _run_trials({m: ests_c}, images, range(int(search_trials)), search_seed, names,
+                                       protocol=protocol)
                 res.append({"config": c, **summarise(np.array(e[m]), np.array(sc[m]))})
             if bar is not None:
                 bar.update(int(search_trials))
@@ -278,7 +326,8 @@ def choose_defaults(tiles_dir, methods=("mrsmcc",), search_trials: int = 40, sea
 def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatures"),
                   trials: int = 200, seed: int = 1, json_path=None, figure_dir=None,
                   cache_dir=None, progress: bool = True, folds: int | None = None,
-                  search_trials: int = 40, search_seed: int = 0) -> dict:
+                  search_trials: int = 40, search_seed: int = 0, deform: bool = False, recolour: bool = False,
+                  measures: bool = False, feature_cache=None) -> dict:
     """Run the protocol; returns the JSON document (also written to ``json_path``).
 
     Per-trial rows (truth, estimates, errors) go to ``trials.csv`` beside the JSON.
@@ -290,6 +339,10 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
     (k < ``trials``) of ``seed`` are drawn over the fold's own, held-out tiles and located with the
     chosen settings.  Every reported figure is a held-out one; the JSON adds ``folds`` (per fold:
     its training and held-out tiles, every candidate's training figures and the chosen settings).
+
+    ``deform`` / ``recolour`` draw the variant trials of :mod:`scenesig.aerial.deform` (search trials too);
+    ``measures`` adds the point-set-domain seed's measures per method (``benchmarks/_aerial_measures.py``);
+    ``feature_cache`` is a folder keeping the point-set-domain methods' XFeat features.
     """
     import cv2
     from threadpoolctl import threadpool_limits
@@ -319,6 +372,12 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
         total = trials if folds is None else trials + int(folds) * search_trials * searched
         bar = tqdm(total=total, desc="aerial trials", unit="trial", file=sys.stderr)
     fold_docs = []
+    protocol = {"deform": bool(deform), "recolour": bool(recolour)} if (deform or recolour) else None
+    collector = None
+    if measures:
+        from scenesig.benchmarks._aerial_measures import MeasureCollector
+        collector = MeasureCollector(images, seed)
+    results: dict = {}
     with threadpool_limits(limits=1):
         if folds is None:
             setup, ests, landmarks = {}, {}, None
@@ -327,8 +386,9 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
                 landmarks = LandmarkModel().fit(images)        # the landmark library: all tiles
                 setup["landmarks"] = time.process_time() - t0
             for m in methods:
-                ests[m], setup[m] = _setup(m, images, landmarks, cache_dir)
-            errors, secs, rows = _run_trials(ests, images, range(int(trials)), seed, names, bar)
+                ests[m], setup[m] = _setup(m, images, landmarks, cache_dir, feature_cache=feature_cache)
+            errors, secs, rows = _run_trials(ests, images, range(int(trials)), seed, names, bar, protocol,
+                                             collector, results)
         else:
             K = int(folds)
             setup = {m: 0.0 for m in methods}
@@ -347,14 +407,18 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
                 fd = {"fold": f, "train_tiles": [names[i] for i in train], "test_tiles": [names[i] for i in test],
                       "search_trials": int(search_trials), "search_seed": int(search_seed)}
                 fd["search"], fd["chosen"] = _search(methods, tr_img, [names[i] for i in train], landmarks,
-                                                     cache_dir, search_trials, search_seed, bar)
+                                                     cache_dir, search_trials, search_seed, bar, protocol,
+                                                     feature_cache)
                 chosen = fd["chosen"]
                 ests = {}
                 for m in methods:
-                    ests[m], t = _setup(m, te_img, landmarks, cache_dir, chosen[m])
+                    ests[m], t = _setup(m, te_img, landmarks, cache_dir, chosen[m], feature_cache)
                     setup[m] += t
                 idx = range(f, int(trials), K)
-                e, sc, r = _run_trials(ests, te_img, idx, seed, [names[i] for i in test], bar)
+                if collector is not None:          # impostors: the fold's other held-out tiles
+                    collector.images = te_img
+                e, sc, r = _run_trials(ests, te_img, idx, seed, [names[i] for i in test], bar, protocol,
+                                       collector, results)
                 for m in methods:
                     errors[m] += e[m]
                     secs[m] += sc[m]
@@ -374,6 +438,7 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
     doc = {"tiles": len(tiles), "trials": int(trials), "success_px": int(SUCCESS_PX),
            "methods": {m: {**summarise(np.array(errors[m]), np.array(secs[m])), "per_tile": per_tile(rows, m)}
                        for m in methods},
+           **({"protocol": _protocol_doc(protocol)} if protocol else {}),
            "seed": int(seed), "best_method": None,
            "setup_seconds": {m: round(v, 2) for m, v in setup.items()},
            "seconds": "CPU seconds of one single-threaded process",
@@ -381,6 +446,21 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
            **({"xfeat": xfeat_info} if "xfeat" in methods else {}),
            "photometric": {k: (list(v) if isinstance(v, tuple) else v)
                            for k, v in PHOTOMETRIC.items()}}
+    if measures or set(methods) & (set(PSD_METHODS) | set(FILTER_METHODS)):
+        from scenesig.benchmarks._aerial_measures import DEFINITIONS, matching_summary
+
+        for m in methods:
+            if measures or m in PSD_METHODS or m in FILTER_METHODS:
+                doc["methods"][m].update(matching_summary(results.get(m, [])))
+            if collector is not None:
+                doc["methods"][m]["measures"] = collector.summary(m)
+        if measures:
+            doc["measures"] = DEFINITIONS
+    if "xfeat" not in doc and set(methods) & (set(PSD_METHODS) | {"xfeat-dapc", "xfeat-gms"}):
+        from scenesig.benchmarks._models import xfeat_model
+        from scenesig.signatures.xfeat import get_xfeat
+
+        doc["xfeat"] = get_xfeat({"model": xfeat_model()}).describe()
     if folds is not None:
         doc["evaluation"] = (f"{int(folds)}-fold cross-validation over tiles: every figure is on held-out tiles, "
                              "settings chosen on the other folds' tiles")
@@ -405,6 +485,18 @@ def run_benchmark(tiles_dir, methods=("mrsmcc", "sism", "sift", "orb", "signatur
             plot_example(ests["mrsmcc"][tr.tile], tr, tiles[tr.tile].name,
                          Path(figure_dir) / "aerial_example.png")
     return doc
+
+
+def _protocol_doc(protocol: dict) -> dict:
+    """The variant trials' switches and ranges, for the JSON."""
+    from scenesig.aerial.deform import DEFORM, RECOLOUR
+
+    out = dict(protocol)
+    if protocol.get("deform"):
+        out["deform_ranges"] = DEFORM
+    if protocol.get("recolour"):
+        out["recolour_ranges"] = RECOLOUR
+    return out
 
 
 def _jsonable(o):
@@ -501,6 +593,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--choose-defaults", action="store_true",
                    help="run only the search, on all tiles (--search-trials, --search-seed): prints every "
                         "candidate's figures, the chosen settings and whether they are the methods' defaults")
+    p.add_argument("--deform", action="store_true",
+                   help="deformed trials: camera tilt up to 15 deg and a smooth displacement field (exact truth)")
+    p.add_argument("--recolour", action="store_true",
+                   help="recoloured trials: region-wise ground-cover change (snow, grass, bare soil)")
+    p.add_argument("--measures", action="store_true",
+                   help="add the point-set-domain seed's measures (RPR, RR, AR, QR, RT, RMSE-DI, RRMSE-DI, ROC AUC; "
+                        "runs every trial's impostor pair too)")
+    p.add_argument("--feature-cache", default=None,
+                   help="folder keeping the point-set-domain methods' XFeat features between runs")
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -520,7 +621,9 @@ def main(argv=None) -> int:
         doc = run_benchmark(args.tiles, [m.strip() for m in args.methods.split(",") if m.strip()],
                             args.trials, args.seed, args.json, args.figure, args.cache,
                             progress=not args.no_progress, folds=args.folds,
-                            search_trials=args.search_trials, search_seed=args.search_seed)
+                            search_trials=args.search_trials, search_seed=args.search_seed,
+                            deform=args.deform, recolour=args.recolour, measures=args.measures,
+                            feature_cache=args.feature_cache)
     except ValueError as exc:
         print(f"scenesig aerial bench: error: {exc}", file=sys.stderr)
         return 2

@@ -11,7 +11,7 @@ Digests hold on the machine that recorded them (the same libraries); elsewhere r
 Regenerate (only when a change of results is intended, and say so in the commit), with 325a86a's code on
 ``PYTHONPATH`` (``git archive 325a86a | tar -x -C DIR``)::
 
-    python tests/replay_golden.py BASE_FOLDER      # BASE_FOLDER gets tiny_runs/, tiny_map/, golden_map/
+    python tests/replay_golden.py BASE_FOLDER [--commit SHA]  # BASE_FOLDER gets tiny_runs/, tiny_map/, golden_map/
 """
 from __future__ import annotations
 
@@ -94,12 +94,13 @@ def main(argv=None) -> int:
 
     argv = sys.argv[1:] if argv is None else argv
     base = Path(argv[0])
+    commit = argv[argv.index("--commit") + 1] if "--commit" in argv else "325a86a"   # the code that recorded
     if "--digest-only" in argv:        # the output folders are already there (written by the recorded commit)
-        golden = {"commit": "325a86a",
+        golden = {"commit": commit,
                   "cases": {c[0]: output_digests(base / "out" / c[0]) for c in CASES},
                   "heavy_cases": {c[0]: output_digests(base / "out_heavy" / c[0]) for c in HEAVY_CASES}}
     else:
-        golden = {"commit": "325a86a",
+        golden = {"commit": commit,
                   "cases": replay_digests(tiny_map(base), base, base / "out", CASES),
                   "heavy_cases": replay_digests(golden_map(base), base, base / "out_heavy", HEAVY_CASES)}
     GOLDEN.parent.mkdir(exist_ok=True)

@@ -3,7 +3,7 @@
 * ``scenesig aerial bench TILES_DIR --methods mrsmcc,sism,sift,orb,signatures --trials N --seed S
   --json OUT [--figure DIR]`` -- the Monte-Carlo benchmark (:mod:`scenesig.benchmarks.aerial`, its own
   arguments);
-* ``scenesig aerial localise TILES_DIR IMAGES_DIR --out DIR [--prior LAT,LON]`` -- a sequence of
+* ``scenesig aerial localise TILES_DIR IMAGES_DIR --out DIR [--prior LAT,LON] [--method psd-kdmm]`` -- a sequence of
   sensed images -> ``track.csv``, ``track.png``, ``summary.json``;
 * ``scenesig aerial simulate TILES_DIR OUT --images N --seed S`` -- a synthetic sequence cut from
   the tiles (with ``truth.csv``), to try ``localise`` on.
@@ -38,6 +38,11 @@ def register(groups):
     p.add_argument("--prior", type=_latlon, help="rough position of the first image: LAT,LON")
     p.add_argument("--prior-radius-m", type=float, default=30.0,
                    help="uncertainty of the prior and of each previous estimate (m, default 30)")
+    p.add_argument("--method", default="mrsmcc", choices=("mrsmcc", "psd-point", "psd-kdm", "psd-kdmm"),
+                   help="matcher: MRSM-CC (default) or a point-set-domain stage, which tries every tile and "
+                        "keeps the best match score (psd-kdmm: the lowest region dissimilarity)")
+    p.add_argument("--xfeat-model", default=None, help="psd-*: the XFeat ONNX model file")
+    p.add_argument("--feature-cache", default=None, help="psd-*: folder keeping XFeat features between runs")
     p.set_defaults(_run=run_localise)
 
     help = "Write a synthetic UAV image sequence cut from the tiles (with truth.csv)."
@@ -58,8 +63,11 @@ def run_bench(args) -> int:
 def run_localise(args) -> int:
     from scenesig.aerial.localise import localise_sequence
 
+    psd = None
+    if args.method != "mrsmcc":
+        psd = {"xfeat": {"model": args.xfeat_model} if args.xfeat_model else {}, "cache": args.feature_cache}
     summary = localise_sequence(args.tiles, args.images, args.out, prior=args.prior,
-                                prior_radius_m=args.prior_radius_m)
+                                prior_radius_m=args.prior_radius_m, method=args.method, psd_config=psd)
     print(json.dumps(summary, indent=1))
     return 0
 
