@@ -3,13 +3,15 @@
 ``tests/data/replay_golden.json`` holds the SHA-256 of ``trajectory.tum``, ``covariances.csv``,
 ``frames.csv`` and ``metrics.json`` (without its timing keys, the map's and the run's paths and the map's
 random identity, which measure the machine, the folders and the build, not the result) of every method on the
-night and overcast runs of the tiny world (``tests/build_world.py``), recorded from main at commit 325a86a --
-the replay as it was *before* it became a driver over :class:`scenesig.localiser.session.Session`.  The
+night and overcast runs of the tiny world (``tests/build_world.py``), recorded from the commit the file names
+(433dc8c: main with the integrity monitor's sequential test, the replay as it was *before* it became a driver
+over :class:`scenesig.localiser.session.Session`; first recorded from 325a86a, re-recorded when the integrity
+work changed the alerts on purpose).  The
 recording is another implementation than the one tested, so a match says the refactor changed no byte.
-Digests hold on the machine that recorded them (the same libraries); elsewhere regenerate from 325a86a.
+Digests hold on the machine that recorded them (the same libraries); elsewhere regenerate from the recording commit.
 
-Regenerate (only when a change of results is intended, and say so in the commit), with 325a86a's code on
-``PYTHONPATH`` (``git archive 325a86a | tar -x -C DIR``)::
+Regenerate (only when a change of results is intended, and say so in the commit), with the recording
+commit's code on ``PYTHONPATH`` (``git worktree add DIR SHA``)::
 
     python tests/replay_golden.py BASE_FOLDER [--commit SHA]  # BASE_FOLDER gets tiny_runs/, tiny_map/, golden_map/
 """
@@ -94,7 +96,7 @@ def main(argv=None) -> int:
 
     argv = sys.argv[1:] if argv is None else argv
     base = Path(argv[0])
-    commit = argv[argv.index("--commit") + 1] if "--commit" in argv else "325a86a"   # the code that recorded
+    commit = argv[argv.index("--commit") + 1] if "--commit" in argv else "unknown"   # the code that recorded
     if "--digest-only" in argv:        # the output folders are already there (written by the recorded commit)
         golden = {"commit": commit,
                   "cases": {c[0]: output_digests(base / "out" / c[0]) for c in CASES},

@@ -23,17 +23,17 @@ def _base(tmp_path_factory) -> Path:
     return tmp_path_factory.getbasetemp()
 
 
-def _check_golden(got: dict, expected: dict) -> None:
+def _check_golden(got: dict, expected: dict, golden_commit: str) -> None:
     bad = {case: [f for f in got[case] if got[case][f] != expected[case][f]] for case in got}
     bad = {k: v for k, v in bad.items() if v}
-    assert not bad, f"outputs differ from main 325a86a's: {bad}"
+    assert not bad, f"outputs differ from the recording commit's ({golden_commit}): {bad}"
 
 
 def test_replay_outputs_are_mains(tiny_world, tmp_path, tmp_path_factory):
-    """localise on the tiny world, every method its map has, with and without INS/GPS: main's bytes."""
+    """localise on the tiny world, every method its map has, with and without INS/GPS: the recorded bytes."""
     runs, root = tiny_world
     golden = json.loads(GOLDEN.read_text())
-    _check_golden(replay_digests(root, _base(tmp_path_factory), tmp_path, CASES), golden["cases"])
+    _check_golden(replay_digests(root, _base(tmp_path_factory), tmp_path, CASES), golden["cases"], golden["commit"])
 
 
 @pytest.mark.heavy
@@ -42,7 +42,8 @@ def test_replay_outputs_are_mains_point_layers(tiny_world, tmp_path, tmp_path_fa
     monkeypatch.setenv("SCENESIG_XFEAT_MODEL", str(xfeat_model))
     base = _base(tmp_path_factory)
     golden = json.loads(GOLDEN.read_text())
-    _check_golden(replay_digests(golden_map(base), base, tmp_path, HEAVY_CASES), golden["heavy_cases"])
+    _check_golden(replay_digests(golden_map(base), base, tmp_path, HEAVY_CASES), golden["heavy_cases"],
+                  golden["commit"])
 
 
 def _feed(session, run, every: int, gray: bool = True):
