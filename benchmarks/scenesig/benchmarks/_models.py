@@ -12,7 +12,7 @@ from pathlib import Path
 
 __all__ = ["SHARED_MODELS", "xfeat_model"]
 
-SHARED_MODELS = Path(__file__).resolve().parents[2] / "shared" / "models"
+SHARED_MODELS = Path(__file__).resolve().parents[4] / "shared" / "models"
 
 
 def xfeat_model() -> str:

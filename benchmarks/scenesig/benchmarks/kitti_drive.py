@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-DEFAULT_DRIVE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti" / "2011_09_26_snippet"
+DEFAULT_DRIVE = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "kitti" / "2011_09_26_snippet"
 TARGETS = {"lateral_median_m": 0.3, "heading_median_deg": 1.0, "failures": 0}
 
 

@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-DEFAULT_DRIVE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti" / "2011_09_26_snippet"
+DEFAULT_DRIVE = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "kitti" / "2011_09_26_snippet"
 
 
 def main(argv=None) -> int:

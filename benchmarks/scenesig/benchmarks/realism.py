@@ -194,7 +194,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     res = realism_table(a.preset, a.seed, a.places)
     if a.real:
-        root = Path(__file__).resolve().parents[2] / "shared" / "data" / "grief"
+        root = Path(__file__).resolve().parents[4] / "shared" / "data" / "grief"
         if root.is_dir():
             res["real"] = grief_reference(root)
         else:

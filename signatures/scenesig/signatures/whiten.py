@@ -23,7 +23,7 @@ The background statistics (``data/hog_background.npz``, a few hundred kB) were e
 KITTI raw snippet's two colour cameras (``../shared/data/kitti``; none of the benchmark data sets)
 by::
 
-    python -m scenesig.signatures.whiten ../shared/data/kitti/2011_09_26_snippet --out signatures/data/hog_background.npz
+    python -m scenesig.signatures.whiten ../shared/data/kitti/2011_09_26_snippet --out signatures/scenesig/signatures/data/hog_background.npz
 """
 from __future__ import annotations
 
