@@ -37,8 +37,8 @@ The command line is ``scenesig build-map RUN... --reference RUN --out maps/NAME 
 
 This module holds the build options (:data:`default_config`, :func:`resolve_config`, :func:`load_config`),
 the per-place assembly (:func:`build_place`, :func:`mine_and_refine`) and the orchestration
-(:func:`build_map`: image vetting, joblib/Dask, georeferencing, the manifest).  The other concerns live in
-their own modules, and every name of theirs this module exposed is re-exported here:
+(:func:`build_map`: image vetting, joblib/Dask, georeferencing, the manifest).  The other concerns of a
+build are their own modules:
 
 * :mod:`scenesig.mapping.selection` -- which frames of which runs feed a place (training images, augmented
   copies, negatives, the refinement window);
@@ -70,14 +70,11 @@ from scenesig.mapping import layers as layers_mod
 from scenesig.mapping.pointmap import build_point_features, build_point_features_all
 from scenesig.mapping.refine import Detections, REASONS, refine_landmarks
 from scenesig.mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
-# the concerns split out of this module, re-exported so ``scenesig.mapping.build.NAME`` keeps working
-from scenesig.mapping.selection import (MAX_FRAMES_PER_RUN, MIN_IMAGES, _subsample, frames_per_run,  # noqa: F401
+from scenesig.mapping.selection import (MAX_FRAMES_PER_RUN, MIN_IMAGES, _subsample, frames_per_run,
                                         mining_images, place_negatives, place_views)
-from scenesig.mapping.truth_scoring import _true_depths, landmark_depth_errors  # noqa: F401
-from scenesig.mapping.build_summary import (_PARTS, _append_stats, _bytes_by_part, _index_ranges,  # noqa: F401
-                                            _read_stats, _seconds_by_layer, _summary_layers, _weak_message,
+from scenesig.mapping.truth_scoring import landmark_depth_errors
+from scenesig.mapping.build_summary import (_append_stats, _read_stats, _weak_message,
                                             _write_summary)
-from scenesig.mapping.coverage import MIN_SIGNATURES  # noqa: F401
 
 __all__ = ["default_config", "resolve_config", "build_map", "build_place", "mine_and_refine", "MinedPlace", "mining_images",
            "place_views", "place_negatives", "vet_images", "load_config"]

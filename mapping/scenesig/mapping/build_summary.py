@@ -5,7 +5,6 @@ depth errors against simulator truth, build time per layer) are journalled as th
 they survive an interrupted build; once the places are built, :func:`_write_summary` aggregates them --
 with the stored bytes per place, part and layer -- into ``build_summary.json``.  Places with fewer than
 :data:`scenesig.mapping.coverage.MIN_SIGNATURES` signatures are reported as weak (McManus et al. 2015, §3.2).
-:mod:`scenesig.mapping.build` re-exports every name here.
 """
 from __future__ import annotations
 

@@ -9,8 +9,8 @@
 * *refinement window* (:func:`_subsample`) -- the reference run's frames around the place that landmark
   refinement fires the kept classifiers over, spread evenly in distance travelled.
 
-The options (``frames_per_run``, ``min_images``, ...) are build options (:data:`scenesig.mapping.build.default_config`);
-:mod:`scenesig.mapping.build` re-exports every name here.
+The options (``frames_per_run``, ``min_images``, ...) are build options (:data:`scenesig.mapping.build.default_config`),
+passed in merged by the build (this module does not import it: the build imports this one).
 """
 from __future__ import annotations
 
@@ -43,7 +43,7 @@ def frames_per_run(cfg: dict, n_runs: int) -> int:
     return int(min(cfg["max_frames_per_run"], max(1, math.ceil(cfg["min_images"] / max(1, n_runs)))))
 
 
-def mining_images(seed: int, views: list, images: list, config: dict | None = None):
+def mining_images(seed: int, views: list, images: list, cfg: dict):
     """The images a place is mined from, and their alignment offsets.
 
     ``images[k]`` is the training frame of ``views[k]`` (the reference run's first); these come first
@@ -51,7 +51,8 @@ def mining_images(seed: int, views: list, images: list, config: dict | None = No
     training set.  Then each run's neighbouring frames (:func:`scenesig.mapping.places.neighbour_frames`, within
     the place's segment), then -- while the place has fewer than ``min_images`` -- photometrically
     augmented copies of the frames in turn (:func:`scenesig.signatures.augment.augment`; seeded by ``seed``, the
-    place index at build time, so a build repeats), each offset by its known shift.
+    place index at build time, so a build repeats), each offset by its known shift.  ``cfg`` is the merged
+    build options (:data:`scenesig.mapping.build.default_config` with the overrides, as the build passes them).
 
     Returns
     -------
@@ -62,9 +63,6 @@ def mining_images(seed: int, views: list, images: list, config: dict | None = No
     """
     import cv2
 
-    from scenesig.mapping.build import _merge   # at call time: build imports this module
-
-    cfg = _merge(config)
     pcfg = merge_settings(places_mod.default_config, cfg["places"], "places")
     per_run = frames_per_run(cfg, len(views))
     out = list(images)

@@ -18,29 +18,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scenesig.signatures.hog import HogPyramid, default_config as hog_default, feature_dim, level_scale
+from scenesig.signatures import detection
+from scenesig.signatures.classifier import sigmoid
+from scenesig.signatures.detection import Detections, default_config, limit_blas_threads, score_maps_bruteforce
+from scenesig.signatures.hog import HogPyramid, feature_dim, level_scale
+from scenesig.signatures.hog import default_config as hog_default
 
 __all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce", "limit_blas_threads"]
-
-# Names of the detection engine (scenesig.signatures.detection) this module answers for, imported on first use:
-# the engine imports this module, so importing it here at load time would be circular.
-_ENGINE_NAMES = frozenset({"Detections", "default_config", "score_maps_bruteforce", "limit_blas_threads",
-                           "_score_all"})
-
-
-def __getattr__(name):
-    if name in _ENGINE_NAMES:
-        from scenesig.signatures import detection
-        return getattr(detection, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__():
-    return sorted(set(globals()) | _ENGINE_NAMES)
-
-
-def _sigmoid(z):
-    return 1.0 / (1.0 + np.exp(-np.clip(z, -50, 50)))
 
 
 @dataclass
@@ -114,7 +98,7 @@ class Classifier:
     def probability(self, score):
         """Calibrated detection probability (lambda) of raw SVM scores."""
         a, b = self.calibration
-        return _sigmoid(a * np.asarray(score, dtype=float) + b)
+        return sigmoid(a * np.asarray(score, dtype=float) + b)
 
 
 
@@ -285,8 +269,7 @@ class Bank:
             window reaches are skipped); those cells are exactly the whole level's.
         threads : levels computed at once (the features are the same for any count).
         """
-        from scenesig.signatures.detection import pyramid
-        return pyramid(self, image, scale_search, levels, windows, threads)
+        return detection.pyramid(self, image, scale_search, levels, windows, threads)
 
     def detect(self, image, windows=None, top_n: int = 1, config: dict | None = None,
                levels=None) -> "Detections":
@@ -312,8 +295,7 @@ class Bank:
         -------
         Detections
         """
-        from scenesig.signatures.detection import detect
-        return detect(self, image, windows, top_n, config, levels)
+        return detection.detect(self, image, windows, top_n, config, levels)
 
 
 def _compact(a: np.ndarray) -> np.ndarray:

@@ -9,7 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["svm_dual", "LinearSVMTrainer", "platt"]
+__all__ = ["svm_dual", "LinearSVMTrainer", "platt", "sigmoid"]
+
+
+def sigmoid(z):
+    """The logistic function of Platt scaling (:func:`platt`), clipped so that ``exp`` cannot overflow."""
+    return 1.0 / (1.0 + np.exp(-np.clip(z, -50, 50)))
 
 
 def svm_dual(K: np.ndarray, n_pos: int, C: float, w_pos: float) -> tuple[np.ndarray, float]:

@@ -33,7 +33,7 @@ import numpy as np
 
 from scenesig.surveys.settings import merge_settings
 
-from scenesig.signatures.bank import Classifier, _sigmoid
+from scenesig.signatures.classifier import sigmoid
 from scenesig.signatures.hog import HogPyramid, build_pyramid, default_config as hog_default, learned
 from scenesig.signatures.hog import (REGION_MARGIN_CELLS, assemble_pyramid, build_level, level_plan,
                                      level_size, thread_map, as_hog_input, window_cell)
@@ -418,8 +418,9 @@ def _score_group(feat, fw, members, classifiers, k) -> list:
     return out
 
 
-def score_maps_bruteforce(classifier: Classifier, feat: np.ndarray) -> np.ndarray:
-    """Reference correlation of one filter over one feature level (slow; for tests).
+def score_maps_bruteforce(classifier, feat: np.ndarray) -> np.ndarray:
+    """Reference correlation of one filter (a :class:`~scenesig.signatures.bank.Classifier`) over one feature
+    level (slow; for tests).
 
     Returns the (Hc - fh + 1, Wc - fw + 1) map of ``sum(w * window) + bias``.
     """
@@ -542,6 +543,6 @@ def _pick_best(classifiers, pyr: HogPyramid, maps, refine: bool) -> Detections:
     if found.any():
         cal = np.array([c.calibration for c in classifiers], dtype=float).reshape(n, 2)
         s = res["score"][found, 0]
-        res["prob"][found, 0] = _sigmoid(cal[found, 0] * s + cal[found, 1])
+        res["prob"][found, 0] = sigmoid(cal[found, 0] * s + cal[found, 1])
     return Detections(**res)
 

@@ -60,7 +60,6 @@ from scenesig.signatures import hog as hogmod
 from scenesig.signatures.bank import Bank, Classifier
 from scenesig.signatures.classifier import platt as _platt
 from scenesig.signatures.classifier import LinearSVMTrainer as _Trainer
-from scenesig.signatures.classifier import svm_dual as _svm_dual  # noqa: F401  (tests call it here)
 from scenesig.signatures.shapes import ShapeSet, candidate_shapes
 
 __all__ = ["default_config", "resolve_config", "mine_place", "partition_images", "shape_geometry", "MiningStats"]
