@@ -4,6 +4,7 @@ import json
 import os
 
 import pytest
+from conftest import SHARED_MODELS
 
 from scenesig.cli import main
 from scenesig.demo import default_config
@@ -13,8 +14,6 @@ METRIC_KEYS = {"method", "run", "lateral_error_m", "heading_error_deg", "localis
                "ms_per_odometry_update", "realtime_factor", "method_config", "oracle", "oracle_reads", "first_fix_m",
                "relocalisations", "false_fixes", "relocalise_m"}
 
-
-from conftest import SHARED_MODELS
 
 XFEAT = SHARED_MODELS / "xfeat" / "xfeat.onnx"
 

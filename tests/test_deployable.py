@@ -11,10 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenesig.localiser.outputs import TRUTH_KEYS, evaluate_folder, read_frames_csv, write_outputs
+from scenesig.localiser.outputs import TRUTH_KEYS, read_frames_csv, write_outputs
 from scenesig.localiser.replay import replay
 from scenesig.cli import main
-from scenesig.surveys.run import read_run
 
 from pipeline_world import TruthMethod, make_live_run, make_map
 

@@ -15,7 +15,6 @@ per-fold choices and the leave-one-place-out total beside the default's.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np

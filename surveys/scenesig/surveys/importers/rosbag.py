@@ -442,7 +442,8 @@ def _check_topic(path: Path, topics: dict, topic: str | None, types: tuple, what
 
 
 def _camera_from_info(msg, path: Path, topic: str, rectified: bool) -> Camera:
-    get = (lambda a: getattr(msg, a) if hasattr(msg, a) else getattr(msg, a.upper()))
+    def get(a):       # ROS 2 names the fields k, d, p; ROS 1 K, D, P
+        return getattr(msg, a) if hasattr(msg, a) else getattr(msg, a.upper())
     K, D, P = (np.asarray(get(a), dtype=float) for a in ("k", "d", "p"))
     w, h = int(msg.width), int(msg.height)
     if w <= 0 or h <= 0 or K.size != 9 or P.size != 12 or not np.all(np.isfinite(K)) or K[0] <= 0 or K[4] <= 0:

@@ -194,7 +194,6 @@ def plan_drive(route: Route, rng: np.random.Generator, crossings=(), stop_prob: 
     dt = ds * 0.5 * (1 / vm[1:] + 1 / vm[:-1])
     t = np.concatenate([[0.0], np.cumsum(dt)])
     # insert the dwell: the stop point appears twice, at arrival and at departure
-    T, S = [t], [sg]
     for s_stop, dwell in stops:
         k = int(np.argmin(np.abs(sg - s_stop)))
         t = np.concatenate([t[:k + 1], t[k:] + dwell])

@@ -74,7 +74,6 @@ def skyline_texture(rng: np.random.Generator, length_m: float, season: str = "su
     img = np.zeros((H, W, 3), np.float32)
     alpha = np.zeros((H, W), np.uint8)
     windows = []
-    xs = np.arange(W)
     # hills: a smooth far silhouette, lighter (further away)
     hill = np.clip(fbm(rng, 1, W, cell=W / 10, octaves=3)[0] * 1.4 - 0.45, 0, 1) * 0.4 * H + 0.05 * H
     hill_mask = (np.arange(H)[:, None] > (H - hill[None, :]))
