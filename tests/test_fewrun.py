@@ -60,6 +60,7 @@ def test_three_run_map_has_signatures_everywhere_and_localises_a_day_run(world, 
 
 def test_one_run_map_builds_from_frames_and_augmented_copies(world, tmp_path, caplog):
     from build_world import SHAPES as SMALL_SHAPES
+
     from scenesig.mapping.build import build_map
 
     root, train, _ = world

@@ -12,7 +12,6 @@ import venv
 import zipfile
 from pathlib import Path
 
-
 ROOT = Path(__file__).resolve().parents[1]
 LAYERS = ("surveys", "signatures", "mapping", "localiser", "aerial", "benchmarks")
 

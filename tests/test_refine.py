@@ -4,15 +4,29 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
+from scenesig.localiser.synthetic import synthetic_window
 from scenesig.mapping.geometry import (
-    anchor_rays, camera_depth, camera_poses, derotate_pixels, ideal_camera, ideal_pixels, ray_points,
-    reproject, reproject_jacobian, window_poses_from_increments, window_poses_from_odometry,
+    anchor_rays,
+    camera_depth,
+    camera_poses,
+    derotate_pixels,
+    ideal_camera,
+    ideal_pixels,
+    ray_points,
+    reproject,
+    reproject_jacobian,
+    window_poses_from_increments,
+    window_poses_from_odometry,
 )
 from scenesig.mapping.refine import (
-    Detections, default_config, huber, lm_huber, refine_landmarks, temporal_check,
+    Detections,
+    default_config,
+    huber,
+    lm_huber,
+    refine_landmarks,
+    temporal_check,
 )
-from scenesig.localiser.synthetic import synthetic_window
-from scenesig.surveys.geometry import Camera, CAMERA_FROM_VEHICLE_AXES, invert, make_pose, rot_x, rot_y, rot_z
+from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, rot_x, rot_y, rot_z
 
 CAM = Camera(500.0, 500.0, 319.5, 239.5, 640, 480)
 T_VC = make_pose(CAMERA_FROM_VEHICLE_AXES, [1.5, 0.0, 1.5])

@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
+from scenesig.localiser.synthetic import synthetic_place
 from scenesig.signatures import mining
 from scenesig.signatures.classifier import svm_dual
 from scenesig.signatures.shapes import ShapeSet
-from scenesig.localiser.synthetic import synthetic_place
 
 
 def _shapes(boxes):

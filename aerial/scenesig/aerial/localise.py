@@ -34,8 +34,8 @@ from scenesig.aerial.geo import load_tiles
 from scenesig.aerial.landmarks import LandmarkModel
 from scenesig.aerial.mrsmcc import MRSMCC
 from scenesig.surveys.errors import DataError
-from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.io import atomic_path, atomic_write_text
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["localise_sequence", "IMAGE_SUFFIXES", "COLUMNS"]
 

@@ -49,8 +49,7 @@ from scenesig.aerial.landmarks import LandmarkModel
 from scenesig.aerial.ncc import local_match
 from scenesig.aerial.sism import ReferenceImage
 from scenesig.aerial.trials import sensed_centre
-from scenesig.signatures.colour import (exact_histogram_match, local_exact_histogram_match,
-                               match_histograms)
+from scenesig.signatures.colour import exact_histogram_match, local_exact_histogram_match, match_histograms
 from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "MRSMCC", "Localisation", "translation_affine"]

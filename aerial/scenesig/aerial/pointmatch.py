@@ -13,6 +13,7 @@ ratio test: mutual nearest neighbours with cosine similarity above 0.82.
 from __future__ import annotations
 
 import time
+
 import numpy as np
 
 from scenesig.aerial.affine import AffineEstimate, ransac_affine

@@ -54,8 +54,8 @@ from scenesig.benchmarks._stages import read_config
 from scenesig.commands._types import positive_int
 from scenesig.signatures import pointfeatures as pf
 from scenesig.surveys.errors import DataError
-from scenesig.surveys.io import atomic_path, atomic_write_text
 from scenesig.surveys.grief import GriefDataset, GriefPair, load
+from scenesig.surveys.io import atomic_path, atomic_write_text
 
 __all__ = ["default_config", "BASELINE_PRESETS", "METHODS", "MethodResult", "run_benchmark",
            "run_point_features", "run_signatures", "score", "make_figure", "run_from_args", "main"]

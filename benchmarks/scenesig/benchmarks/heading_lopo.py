@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from scenesig.benchmarks._stages import emit_json
 from scenesig.signatures import heading
 from scenesig.surveys.grief import load
-from scenesig.benchmarks._stages import emit_json
 
 CANDIDATES = (1.5, 3.0, 6.0, 12.0, 24.0, 1e6)      # 1e6: no spread weighting
 

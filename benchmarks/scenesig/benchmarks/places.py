@@ -312,9 +312,7 @@ def _verify(ds, pr: Protocol, cfg: dict, jobs: int = 1, progress: bool = True, b
     """
     from joblib import Parallel, delayed
 
-    from scenesig.signatures import globaldesc, heading
-    from scenesig.signatures import hog as hogmod
-    from scenesig.signatures import mining
+    from scenesig.signatures import globaldesc, heading, hog as hogmod, mining
 
     hcfg = _heading_config(cfg)
     scale = float(hcfg["scale"])

@@ -41,8 +41,8 @@ class _Tiled:
         self.n = int(n_places)
 
     def rank(self, image):
-        from scenesig.signatures.bank import limit_blas_threads
         from scenesig.signatures import globaldesc
+        from scenesig.signatures.bank import limit_blas_threads
 
         q = globaldesc.describe(image, self.base.config)
         with limit_blas_threads(1):       # as PlaceRetrieval.scores
@@ -52,8 +52,7 @@ class _Tiled:
 
 def measure(map_root, run_root, places=(30, 100, 300), frames: int = 20, shortlist: int | None = None) -> dict:
     from scenesig.localiser.pipeline import Measurement, MotionPrior, make_method
-    from scenesig.localiser.relocalise import PlaceRetrieval
-    from scenesig.localiser.relocalise import default_config as reloc_default
+    from scenesig.localiser.relocalise import PlaceRetrieval, default_config as reloc_default
     from scenesig.mapping.store import MapStore
     from scenesig.surveys.run import read_run
 

@@ -41,8 +41,7 @@ import cv2
 import numpy as np
 
 from scenesig.benchmarks._timing import median_ms, median_ms_unqueued, reference_seconds
-from scenesig.signatures import hog as hogmod
-from scenesig.signatures import mining
+from scenesig.signatures import hog as hogmod, mining
 from scenesig.signatures.bank import Bank
 from scenesig.surveys.io import atomic_write_text
 

@@ -52,9 +52,9 @@ from scenesig.mapping.refine import default_config as refine_default
 from scenesig.mapping.store import MapStore, PlaceData
 from scenesig.signatures.bank import Bank, limit_blas_threads
 from scenesig.surveys.cache import LRUCache
-from scenesig.surveys.validation import check_covariance
-from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.geometry import Camera, invert, point_pose_jacobian
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.validation import check_covariance
 
 __all__ = ["default_config", "Observation", "Detector", "search_windows", "measurement_covariance",
            "projection_jacobians"]

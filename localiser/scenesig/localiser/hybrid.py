@@ -53,14 +53,12 @@ from scenesig.mapping.store import MapStore
 from scenesig.surveys.geometry import Camera, invert
 from scenesig.surveys.settings import merge_settings
 
-from .absolute_pose import default_config as absolute_pose_default
-from .absolute_pose import estimate as estimate_absolute_pose
+from .absolute_pose import default_config as absolute_pose_default, estimate as estimate_absolute_pose
 from .detector import Observation
 from .methods import Measurement, MotionPrior, WeakLocaliser, register_method
 from .pointmethod import LiveFrame, PointLocaliser, PointObservation
 from .signature_method import SignatureLocaliser
-from .solver import SolveResult, _Problem, _solve, pose_log, solve, solve_pnp_prior
-from .solver import default_config as solver_default
+from .solver import SolveResult, _Problem, _solve, default_config as solver_default, pose_log, solve, solve_pnp_prior
 
 __all__ = ["default_config", "HybridObservation", "HybridLocaliser", "HybridResult", "fuse", "solve_hybrid",
            "HYBRID_METHODS", "signature_agreement"]

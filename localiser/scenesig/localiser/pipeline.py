@@ -39,6 +39,7 @@ from scenesig.surveys.geometry import invert
 from scenesig.surveys.settings import merge_settings
 
 from .failure import FAILURE_DISTANCE_M, is_failure
+
 # The interfaces, the registry and the scene-signature method: part of this module's interface (see above).
 from .methods import Measurement, MotionPrior, WeakLocaliser, available_methods, make_method, register_method
 from .posegraph import PoseGraph

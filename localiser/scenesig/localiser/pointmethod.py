@@ -47,13 +47,12 @@ from scenesig.mapping.pointmap import POINT_MAPS, keypoint_sigma, point_features
 from scenesig.mapping.store import MapStore
 from scenesig.signatures.pointfeatures import PointFeatures, active_feature_cache, extract, match
 from scenesig.surveys.cache import LRUCache
-from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.geometry import Camera
+from scenesig.surveys.settings import merge_settings
 
 from .detector import search_windows
 from .methods import Measurement, MotionPrior, WeakLocaliser, register_method
-from .solver import default_config as solver_default
-from .solver import default_pnp_config, solve_pnp_prior
+from .solver import default_config as solver_default, default_pnp_config, solve_pnp_prior
 
 __all__ = ["default_config", "MATCHERS", "PointObservation", "LiveFrame", "PointLocaliser", "keypoint_sigma",
            "match_to_map", "method_name", "window_mask"]

@@ -28,9 +28,9 @@ import time
 import gtsam
 import numpy as np
 
-from scenesig.surveys.validation import check_covariance, check_pose
-from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.geometry import invert
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.validation import check_covariance, check_pose
 
 from .solver import pose_exp, pose_log
 

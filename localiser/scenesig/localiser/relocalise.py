@@ -30,10 +30,10 @@ import numpy as np
 
 from scenesig.mapping.store import MapStore
 from scenesig.signatures import globaldesc
+from scenesig.signatures.bank import limit_blas_threads
 from scenesig.surveys.geometry import yaw_of
 from scenesig.surveys.settings import merge_settings
 
-from scenesig.signatures.bank import limit_blas_threads
 from .methods import Measurement, MotionPrior, WeakLocaliser
 from .pipeline import Localiser
 

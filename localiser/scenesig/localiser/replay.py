@@ -61,13 +61,12 @@ from pathlib import Path
 import numpy as np
 
 from scenesig.mapping.store import MapStore
-from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.errors import CorruptImageError, DataError
 from scenesig.surveys.run import SurveyRun, read_run
+from scenesig.surveys.settings import merge_settings
 
-from .outputs import (FRAMES_COLUMNS, TIMING_KEYS, compute_metrics, map_relative_truth,  # noqa: F401  (re-exported)
-                      reference_path, write_outputs)
 from .methods import Measurement, WeakLocaliser, make_method
+from .outputs import FRAMES_COLUMNS, TIMING_KEYS, compute_metrics, map_relative_truth, reference_path, write_outputs  # noqa: F401  (re-exported)
 from .pipeline import Localiser
 
 log = logging.getLogger(__name__)
@@ -539,9 +538,9 @@ def resolve_config(config: dict | None = None, method: str = "signatures") -> di
     its ``posegraph`` :data:`scenesig.localiser.posegraph.default_config`), ``relocalise``
     (:data:`scenesig.localiser.relocalise.default_config`) and ``method`` (:func:`method_settings`).  A misspelt
     key anywhere is a ``ValueError`` naming it."""
+    from .integrity import default_config as integrity_default
     from .pipeline import default_config as localiser_default
     from .posegraph import default_config as posegraph_default
-    from .integrity import default_config as integrity_default
     from .relocalise import default_config as relocalise_default
 
     cfg = merge_settings(default_config, config, "replay", open=("localiser", "method", "relocalise", "integrity"))

@@ -17,8 +17,7 @@ from scenesig.surveys.settings import merge_settings
 from . import _solver_kernel
 from .detector import Detector, Observation
 from .methods import Measurement, MotionPrior, WeakLocaliser, register_method
-from .solver import default_config as solver_default
-from .solver import solve
+from .solver import default_config as solver_default, solve
 
 __all__ = ["signature_default_config", "SignatureLocaliser"]
 

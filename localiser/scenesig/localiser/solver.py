@@ -49,11 +49,10 @@ import gtsam
 import numpy as np
 
 from scenesig.localiser import _solver_kernel
-from scenesig.localiser.absolute_pose import default_config as absolute_pose_default
-from scenesig.localiser.absolute_pose import estimate as estimate_absolute_pose
-from scenesig.surveys.validation import check_array
-from scenesig.surveys.settings import merge_settings
+from scenesig.localiser.absolute_pose import default_config as absolute_pose_default, estimate as estimate_absolute_pose
 from scenesig.surveys.geometry import Camera, invert, point_pose_jacobian
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.validation import check_array
 
 __all__ = ["default_config", "SolveResult", "LocalisationConstraint", "solve", "solve_pnp_prior",
            "pose_exp", "pose_log", "default_pnp_config"]

@@ -55,26 +55,29 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesig.surveys.errors import CorruptImageError, DataError
-from scenesig.surveys.settings import merge_settings
-from scenesig.surveys.geometry import invert
-from scenesig.surveys.run import SurveyRun
-from scenesig.signatures import experience
-from scenesig.signatures import globaldesc
-from scenesig.signatures.mining import mine_place
+from scenesig.mapping import georef as georef_mod, layers as layers_mod, places as places_mod
+from scenesig.mapping.build_summary import _append_stats, _read_stats, _weak_message, _write_summary
+from scenesig.mapping.pointmap import build_point_features, build_point_features_all
+from scenesig.mapping.refine import REASONS, Detections, refine_landmarks
+from scenesig.mapping.selection import (
+    MAX_FRAMES_PER_RUN,
+    MIN_IMAGES,
+    _subsample,
+    frames_per_run,
+    mining_images,
+    place_negatives,
+    place_views,
+)
+from scenesig.mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
+from scenesig.mapping.truth_scoring import landmark_depth_errors
+from scenesig.signatures import experience, globaldesc
 from scenesig.signatures.bank import default_config as bank_default_config
 from scenesig.signatures.hog import level_scale
-from scenesig.mapping import georef as georef_mod
-from scenesig.mapping import places as places_mod
-from scenesig.mapping import layers as layers_mod
-from scenesig.mapping.pointmap import build_point_features, build_point_features_all
-from scenesig.mapping.refine import Detections, REASONS, refine_landmarks
-from scenesig.mapping.store import MapWriter, PlaceData, decode_place, encode_keyframe, place_file_name
-from scenesig.mapping.selection import (MAX_FRAMES_PER_RUN, MIN_IMAGES, _subsample, frames_per_run,
-                                        mining_images, place_negatives, place_views)
-from scenesig.mapping.truth_scoring import landmark_depth_errors
-from scenesig.mapping.build_summary import (_append_stats, _read_stats, _weak_message,
-                                            _write_summary)
+from scenesig.signatures.mining import mine_place
+from scenesig.surveys.errors import CorruptImageError, DataError
+from scenesig.surveys.geometry import invert
+from scenesig.surveys.run import SurveyRun
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "resolve_config", "build_map", "build_place", "mine_and_refine", "MinedPlace", "mining_images",
            "place_views", "place_negatives", "vet_images", "load_config"]

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesig.surveys.io import append_line, atomic_write_bytes
 from scenesig.mapping import layers as layers_mod
 from scenesig.mapping.coverage import MIN_SIGNATURES
 from scenesig.mapping.refine import REASONS
+from scenesig.surveys.io import append_line, atomic_write_bytes
 
 __all__: list[str] = []
 

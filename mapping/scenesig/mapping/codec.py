@@ -20,8 +20,8 @@ from typing import Callable
 
 import numpy as np
 
-from scenesig.surveys.validation import check_image
 from scenesig.surveys.errors import DataError
+from scenesig.surveys.validation import check_image
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "PlaceData", "encode_place", "decode_place", "encode_keyframe", "decode_keyframe",
            "FLOAT16_MIN_MANTISSA_BITS", "GEOMETRY_TOL"]

@@ -41,12 +41,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scenesig.surveys.settings import merge_settings
-from scenesig.surveys.geometry import (Camera, exp_so3, interpolate_poses, invert, make_pose, point_pose_jacobian, rot_z,
-                              yaw_of)
 from scenesig.mapping.geometry import detection_covariance_factor, ideal_camera, ideal_pixels, reference_area
-from scenesig.mapping.refine import _huber_weight
-from scenesig.mapping.refine import default_config as refine_defaults
+from scenesig.mapping.refine import _huber_weight, default_config as refine_defaults
+from scenesig.surveys.geometry import (
+    Camera,
+    exp_so3,
+    interpolate_poses,
+    invert,
+    make_pose,
+    point_pose_jacobian,
+    rot_z,
+    yaw_of,
+)
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "resolve_config", "RelativePose", "solve_relative_pose", "observe_place", "combine_estimates",
            "smooth_corrections", "georeference_places", "METHODS"]

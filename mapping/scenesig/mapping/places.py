@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.geometry import interpolate_poses, invert, yaw_of
 from scenesig.surveys.run import SurveyRun
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["Place", "TrainingView", "define_places", "training_views", "neighbour_frames", "odometry_view",
            "default_config",

@@ -51,11 +51,10 @@ import time
 
 import numpy as np
 
-from scenesig.surveys.settings import merge_settings
-from scenesig.surveys.geometry import Camera, invert
-from scenesig.signatures.pointfeatures import PointFeatures, extract, match
-from scenesig.signatures.pointfeatures import default_config as features_default
 from scenesig.mapping.geometry import camera_poses, ideal_camera, ideal_pixels, reproject_jacobian
+from scenesig.signatures.pointfeatures import PointFeatures, default_config as features_default, extract, match
+from scenesig.surveys.geometry import Camera, invert
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "resolve_config", "build_point_features", "build_point_features_all", "combine_keyframe_maps",
            "point_keyframes",

@@ -26,13 +26,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scenesig.surveys.validation import check_covariance
-from scenesig.surveys.settings import merge_settings
-from scenesig.surveys.geometry import Camera, invert
 from scenesig.mapping.geometry import (
-    anchor_rays, camera_depth, camera_poses, derotate_pixels, ideal_camera, ideal_pixels, ray_points,
-    reproject, reproject_jacobian, detection_covariance_factor, reference_area,
+    anchor_rays,
+    camera_depth,
+    camera_poses,
+    derotate_pixels,
+    detection_covariance_factor,
+    ideal_camera,
+    ideal_pixels,
+    ray_points,
+    reference_area,
+    reproject,
+    reproject_jacobian,
 )
+from scenesig.surveys.geometry import Camera, invert
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.validation import check_covariance
 
 __all__ = ["default_config", "REASONS", "Detections", "RefineResult", "refine_landmarks",
            "temporal_check", "depth_sweep", "lm_huber", "huber"]

@@ -18,11 +18,11 @@ import math
 
 import numpy as np
 
-from scenesig.surveys.run import SurveyRun
-from scenesig.surveys.settings import merge_settings
+from scenesig.mapping import places as places_mod
 from scenesig.signatures import experience
 from scenesig.signatures.augment import synthesise
-from scenesig.mapping import places as places_mod
+from scenesig.surveys.run import SurveyRun
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["MIN_IMAGES", "MAX_FRAMES_PER_RUN", "frames_per_run", "mining_images", "place_views", "place_negatives"]
 

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from scenesig.mapping.store import MapStore
+from scenesig.signatures.bank import Bank
 from scenesig.surveys.errors import DataError
 from scenesig.surveys.geometry import invert, transform
-from scenesig.signatures.bank import Bank
-from scenesig.mapping.store import MapStore
 from scenesig.surveys.io import atomic_path
 
 __all__ = ["place_figure", "heatmap", "show_map", "describe_map"]

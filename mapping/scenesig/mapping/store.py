@@ -47,15 +47,22 @@ from typing import Callable
 import numpy as np
 
 from scenesig.surveys.cache import LRUCache
-from scenesig.surveys.validation import check_pose
 from scenesig.surveys.errors import DataError
-from scenesig.surveys.io import append_line, atomic_write_bytes, fsync_dir, make_dirs, remove_stale_temps
-
 from scenesig.surveys.geometry import Camera, yaw_of
+from scenesig.surveys.io import append_line, atomic_write_bytes, fsync_dir, make_dirs, remove_stale_temps
+from scenesig.surveys.validation import check_pose
 
+from .codec import (  # noqa: F401
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    READABLE_VERSIONS,
+    PlaceData,
+    decode_keyframe,
+    decode_place,
+    encode_keyframe,
+    encode_place,
+)
 from .identity import map_id_of, new_map_id
-from .codec import (FORMAT_NAME, FORMAT_VERSION, READABLE_VERSIONS, PlaceData, decode_keyframe, decode_place,  # noqa: F401
-                    encode_keyframe, encode_place)
 
 __all__ = ["verify_summary", "FORMAT_NAME", "FORMAT_VERSION", "PlaceData", "PlaceMeta", "MapWriter", "MapStore",
            "encode_keyframe", "decode_keyframe", "place_file_name", "write_manifest", "atomic_write_bytes",

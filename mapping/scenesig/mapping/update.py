@@ -46,17 +46,24 @@ from pathlib import Path
 
 import numpy as np
 
+from scenesig.mapping import places as places_mod
+from scenesig.mapping.build import _merge as build_settings, mine_and_refine, place_negatives, place_views
+from scenesig.mapping.codec import PlaceData, encode_place
+from scenesig.mapping.identity import map_id_of
+from scenesig.mapping.store import (
+    JOURNAL as BUILD_JOURNAL,
+    MANIFEST,
+    PLACES_DIR,
+    MapStore,
+    place_file_name,
+    write_manifest,
+)
+from scenesig.signatures.bank import Bank
 from scenesig.surveys.errors import DataError
 from scenesig.surveys.geometry import invert, yaw_of
 from scenesig.surveys.io import atomic_write_bytes, atomic_write_text, fsync_dir
 from scenesig.surveys.run import SurveyRun, read_run
 from scenesig.surveys.settings import merge_settings
-from scenesig.signatures.bank import Bank
-from scenesig.mapping import places as places_mod
-from scenesig.mapping.build import _merge as build_settings, mine_and_refine, place_negatives, place_views
-from scenesig.mapping.codec import PlaceData, encode_place
-from scenesig.mapping.identity import map_id_of
-from scenesig.mapping.store import JOURNAL as BUILD_JOURNAL, MANIFEST, PLACES_DIR, MapStore, place_file_name, write_manifest
 
 __all__ = ["default_config", "Localisation", "find_run", "weak_places", "check_localisations", "update_map"]
 

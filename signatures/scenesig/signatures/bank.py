@@ -21,8 +21,7 @@ import numpy as np
 from scenesig.signatures import detection
 from scenesig.signatures.classifier import sigmoid
 from scenesig.signatures.detection import Detections, default_config, limit_blas_threads, score_maps_bruteforce
-from scenesig.signatures.hog import HogPyramid, feature_dim, level_scale
-from scenesig.signatures.hog import default_config as hog_default
+from scenesig.signatures.hog import HogPyramid, default_config as hog_default, feature_dim, level_scale
 
 __all__ = ["Classifier", "Bank", "Detections", "default_config", "score_maps_bruteforce", "limit_blas_threads"]
 

@@ -31,12 +31,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenesig.surveys.settings import merge_settings
-
 from scenesig.signatures.classifier import sigmoid
-from scenesig.signatures.hog import HogPyramid, build_pyramid, default_config as hog_default, learned
-from scenesig.signatures.hog import (REGION_MARGIN_CELLS, assemble_pyramid, build_level, level_plan,
-                                     level_size, thread_map, as_hog_input, window_cell)
+from scenesig.signatures.hog import (
+    REGION_MARGIN_CELLS,
+    HogPyramid,
+    as_hog_input,
+    assemble_pyramid,
+    build_level,
+    build_pyramid,
+    default_config as hog_default,
+    learned,
+    level_plan,
+    level_size,
+    thread_map,
+    window_cell,
+)
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["Detections", "default_config", "detect", "pyramid", "score_maps_bruteforce", "limit_blas_threads"]
 

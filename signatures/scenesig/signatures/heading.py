@@ -53,8 +53,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from scenesig.signatures import hog as hogmod
-from scenesig.signatures import experience, mining
+from scenesig.signatures import experience, hog as hogmod, mining
 from scenesig.signatures.augment import augment, synthesise
 from scenesig.signatures.colour import local_exact_histogram_match
 from scenesig.surveys.settings import merge_settings

@@ -53,14 +53,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from scenesig.surveys.validation import check_image
-from scenesig.surveys.settings import merge_settings
-
 from scenesig.signatures import hog as hogmod
 from scenesig.signatures.bank import Bank, Classifier
-from scenesig.signatures.classifier import platt as _platt
-from scenesig.signatures.classifier import LinearSVMTrainer as _Trainer
+from scenesig.signatures.classifier import LinearSVMTrainer as _Trainer, platt as _platt
 from scenesig.signatures.shapes import ShapeSet, candidate_shapes
+from scenesig.surveys.settings import merge_settings
+from scenesig.surveys.validation import check_image
 
 __all__ = ["default_config", "resolve_config", "mine_place", "partition_images", "shape_geometry", "MiningStats"]
 

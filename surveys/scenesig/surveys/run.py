@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import CorruptImageError, DataError
-from .images import read_image
 from .geometry import Camera, interpolate_poses, pose_to_xyzquat, xyzquat_to_pose
+from .images import read_image
 from .io import atomic_folder
 from .tum import read_tum, write_tum
 

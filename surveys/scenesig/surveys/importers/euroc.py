@@ -31,8 +31,15 @@ from ..errors import DataError
 from ..geometry import Camera, nearest_rotation, xyzquat_to_pose
 from ..run import SurveyRun
 from ..settings import merge_settings
-from .common import (find_gaps, nominal_rate, numbers, odometry_from_groundtruth, read_rows, ticks_to_seconds,
-                     write_imported)
+from .common import (
+    find_gaps,
+    nominal_rate,
+    numbers,
+    odometry_from_groundtruth,
+    read_rows,
+    ticks_to_seconds,
+    write_imported,
+)
 
 __all__ = ["default_config", "read_sensor_yaml", "read_asl_csv", "load_euroc", "import_euroc"]
 

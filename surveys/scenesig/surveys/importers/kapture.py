@@ -40,8 +40,17 @@ from ..geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, pose
 from ..io import atomic_folder
 from ..run import FORMAT_VERSION, SurveyRun, dump_toml
 from ..settings import merge_settings
-from .common import (TIMESTAMP_UNITS, nominal_rate, numbers, odometry_from_groundtruth, odometry_note,
-                     odometry_with_noise, read_rows, ticks_to_seconds, write_imported)
+from .common import (
+    TIMESTAMP_UNITS,
+    nominal_rate,
+    numbers,
+    odometry_from_groundtruth,
+    odometry_note,
+    odometry_with_noise,
+    read_rows,
+    ticks_to_seconds,
+    write_imported,
+)
 
 __all__ = ["default_config", "export_kapture", "load_kapture", "import_kapture", "read_kapture_csv",
            "KAPTURE_VERSION", "TIMESTAMP_UNITS"]

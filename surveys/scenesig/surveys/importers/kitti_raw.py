@@ -43,8 +43,15 @@ from ..errors import DataError
 from ..geometry import Camera, invert, make_pose, nearest_rotation, rot_x, rot_y, rot_z
 from ..run import SurveyRun
 from ..settings import merge_settings
-from .common import (find_gaps, nominal_rate, numbers, odometry_note, odometry_with_noise, planar_dead_reckoning,
-                     write_imported)
+from .common import (
+    find_gaps,
+    nominal_rate,
+    numbers,
+    odometry_note,
+    odometry_with_noise,
+    planar_dead_reckoning,
+    write_imported,
+)
 
 __all__ = ["default_config", "read_calib", "read_timestamps", "read_oxts", "oxts_poses", "camera_from_calib",
            "load_kitti_raw", "import_kitti_raw", "OXTS_FIELDS", "EARTH_RADIUS"]

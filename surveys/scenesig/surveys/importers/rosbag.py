@@ -51,8 +51,7 @@ from ..geometry import Camera, interpolate_poses, invert, pose_to_xyzquat, xyzqu
 from ..io import atomic_folder, atomic_path
 from ..run import SurveyRun
 from ..settings import merge_settings
-from .common import find_gaps, odometry_from_groundtruth, odometry_note, odometry_with_noise, \
-    ticks_to_seconds
+from .common import find_gaps, odometry_from_groundtruth, odometry_note, odometry_with_noise, ticks_to_seconds
 
 __all__ = ["default_config", "require_rosbags", "bag_paths", "bag_format", "list_topics", "suggest_arguments",
            "load_rosbag", "import_rosbag", "write_run_bag", "export_trajectory_bag", "read_bag_poses",
