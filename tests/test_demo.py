@@ -1,4 +1,4 @@
-"""``scenesig demo`` end to end on the tiny world: every stage runs, summary.json has the README's schema,
+"""``scenesig demo`` end to end on the tiny world: every stage runs, summary.json has docs/cli.md's schema,
 the report is written, and a re-run reuses what is there."""
 import json
 import os
