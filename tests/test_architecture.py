@@ -53,6 +53,15 @@ def test_every_layer_folder_is_a_source_root_installed_under_scenesig():
     assert set(_layer_roots()) == set(scenesig._LAYERS), "scenesig/__init__.py's _LAYERS and package-dir differ"
 
 
+def test_no_module_outside_its_source_root():
+    """A module left in a layer folder's old place (``localiser/session.py``) is not importable as
+    ``scenesig.localiser.session``: move it under ``localiser/scenesig/localiser/`` (``git mv``)."""
+    stray = sorted(str(p.relative_to(ROOT)) for layer, root in _layer_roots().items() for p in root.rglob("*")
+                   if p.is_file() and "__pycache__" not in p.parts
+                   and not p.is_relative_to(root / "scenesig" / layer))
+    assert not stray, f"files outside their layer's source root (<layer>/scenesig/<layer>/): {stray}"
+
+
 def test_no_symbolic_links_are_tracked():
     listed = subprocess.run(["git", "ls-files", "-s"], cwd=ROOT, capture_output=True, text=True)
     if listed.returncode != 0:
