@@ -229,7 +229,7 @@ def run_point_features(dataset: GriefDataset, pairs: list[GriefPair], kind: str 
                         done[(place_idx, p.map, p.live)] = m
                 dx = feats[p.live].xy[m.train, 0] - feats[p.map].xy[m.query, 0]
                 dy = feats[p.live].xy[m.train, 1] - feats[p.map].xy[m.query, 1]
-                vote = pf.vote_displacement(dx, dy=dy, **pf._merge(cfg)["vote"])
+                vote = pf.histogram_displacement(dx, dy=dy, **pf._merge(cfg)["vote"])
                 return k, vote, m, dx
 
             t = time.perf_counter()
@@ -246,7 +246,7 @@ def run_point_features(dataset: GriefDataset, pairs: list[GriefPair], kind: str 
     # The same matches voted both ways: shows how much the bin placement alone moves the rate.
     variants = {}
     for voting in ("fixed", "sliding"):
-        ests = [pf.vote_displacement(o.dx, cfg.get("vote", {}).get("bin_px", 20.0), voting).displacement
+        ests = [pf.histogram_displacement(o.dx, cfg.get("vote", {}).get("bin_px", 20.0), voting).displacement
                 for o in outcomes]
         variants[voting] = score(dataset, pairs, ests)["error_rate"]
     extra = {

@@ -41,7 +41,7 @@ def revote(rec, cfg: dict, sigma: float) -> float:
     w = np.where(use, (np.nan_to_num(pm)[:, None] * np.nan_to_num(pl)) ** float(cfg["prob_weight"]), 0.0)
     w = w / ((1.0 + (sx / float(sigma)) ** 2) ** 2)[:, None]
     w = w * float(cfg["rank_decay"]) ** np.arange(n_top)[None, :]
-    est, _ = heading.vote_displacement(votes.ravel(), w.ravel(), float(cfg["vote_window_px"]))
+    est, _ = heading.densest_window_displacement(votes.ravel(), w.ravel(), float(cfg["vote_window_px"]))
     return est
 
 

@@ -21,7 +21,7 @@ Methods (one harness; every method sees the same map images and queries)
     descriptors of :mod:`scenesig.signatures.globaldesc` shortlist ``shortlist`` places, and each
     shortlisted place's bank verifies: it is searched across the whole query image (rows near its
     trained row) and its classifiers vote for a horizontal displacement (the GRIEF analogue of the
-    pose solve, :func:`scenesig.signatures.heading.vote_displacement`); the place whose votes agree best
+    pose solve, :func:`scenesig.signatures.heading.densest_window_displacement`); the place whose votes agree best
     (the share of vote weight in the densest 20-px window) wins; places outside the shortlist keep
     their descriptor order behind the shortlist.  Banks are mined as in ``bench heading`` -- on
     season from augmented copies of the summer image only, on stromovka leave-one-session-out (never
@@ -377,7 +377,7 @@ def _verify(ds, pr: Protocol, cfg: dict, jobs: int = 1, progress: bool = True, b
             spread = np.nan_to_num(np.array([c.spread[0] for c in bank]) / scale, nan=1e3)
             w = 1.0 / (1.0 + (spread / float(hcfg["spread_sigma_px"])) ** 2) ** 2
             w = np.where(np.isfinite(votes), w, 0.0)
-            _, inl = heading.vote_displacement(votes, w, window)
+            _, inl = heading.densest_window_displacement(votes, w, window)
             V[qi, p] = float(w[inl].sum() / w.sum()) if w.sum() > 0 else 0.0
     return desc, V, time.perf_counter() - t0, t_map
 

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from scenesig.mapping.geometry import camera_poses, reproject
-from scenesig.mapping.refine import Detections
+from scenesig.mapping.refine import WindowDetections
 from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, rot_z
 
 from .solver import pose_exp
@@ -165,7 +165,7 @@ def synthetic_window(n_landmarks=300, n_frames=21, spacing=1.0, path="straight",
     points[:n_true] = P_place
     true_depth = np.full(N, np.nan)
     true_depth[:n_true] = depth
-    return {"detections": Detections(det, scale, prob, np.ones(N)), "T_window_place": T_wp, "camera": cam,
+    return {"detections": WindowDetections(det, scale, prob, np.ones(N)), "T_window_place": T_wp, "camera": cam,
             "T_vehicle_camera": T_vc, "reference": ref, "Q": (sigma_px ** 2) * np.eye(2), "points": points,
             "depth": true_depth, "random": np.arange(N) >= n_true}
 

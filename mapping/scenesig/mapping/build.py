@@ -58,7 +58,7 @@ import numpy as np
 from scenesig.mapping import georef as georef_mod, layers as layers_mod, places as places_mod
 from scenesig.mapping.build_summary import _append_stats, _read_stats, _weak_message, _write_summary
 from scenesig.mapping.pointmap import build_point_features, build_point_features_all
-from scenesig.mapping.refine import REASONS, Detections, refine_landmarks
+from scenesig.mapping.refine import REASONS, WindowDetections, refine_landmarks
 from scenesig.mapping.selection import (
     MAX_FRAMES_PER_RUN,
     MIN_IMAGES,
@@ -249,7 +249,7 @@ def mine_and_refine(views: list, negatives: list[np.ndarray], cfg: dict, rng: in
         spo = int(bank.hog["scales_per_octave"])
         scale_range = np.array([[level_scale(c.level + ss, spo), level_scale(max(0, c.level - ss), spo)]
                                 for c in bank.classifiers], dtype=float)
-        dets = Detections(uv, np.nan_to_num(scale), np.nan_to_num(prob), area, scale_range)
+        dets = WindowDetections(uv, np.nan_to_num(scale), np.nan_to_num(prob), area, scale_range)
         # T_{j,p}: the place frame (the reference frame's vehicle pose) seen from window frame j
         res = refine_landmarks(dets, invert(T_frame_window), camera, T_vc, reference=reference,
                                config=cfg["refine"] or None)

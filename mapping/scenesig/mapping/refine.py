@@ -43,7 +43,7 @@ from scenesig.surveys.geometry import Camera, invert
 from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.validation import check_covariance
 
-__all__ = ["default_config", "REASONS", "Detections", "RefineResult", "refine_landmarks",
+__all__ = ["default_config", "REASONS", "WindowDetections", "RefineResult", "refine_landmarks",
            "temporal_check", "depth_sweep", "lm_huber", "huber"]
 
 default_config = {
@@ -88,7 +88,7 @@ default_config = {
     "fit_max_rms_frac": 0.0075,
     # Multiply the covariance by the a-posteriori variance factor (chi^2 / dof) when R is poorly known.
     "scale_covariance": False,
-    # Scale gating (only with Detections.scale_range).  A landmark at depth z_a in the anchor camera appears
+    # Scale gating (only with WindowDetections.scale_range).  A landmark at depth z_a in the anchor camera appears
     # z_a / z_j times larger in window frame j, so the detector can only have found it at scale
     # s_j = s_a z_j / z_a (s_a: the anchor firing's scale).  Where s_j lies outside the searched scales (by
     # more than ``scale_range_margin`` octaves) the patch could not be matched, and where the firing's own
@@ -125,8 +125,9 @@ def _huber_weight(c: np.ndarray, alpha: float) -> np.ndarray:
 
 
 @dataclass
-class Detections:
-    """Detections of N classifiers over F window frames.
+class WindowDetections:
+    """Detections of N classifiers over F window frames (the refinement window; a frame's bank detection
+    is :class:`scenesig.signatures.detection.Detections`).
 
     Parameters
     ----------
@@ -534,14 +535,14 @@ def _safe_inverse(A):
 # --------------------------------------------------------------------------------------------------------
 # the whole stage
 # --------------------------------------------------------------------------------------------------------
-def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_vehicle_camera,
+def refine_landmarks(detections: WindowDetections, T_window_place, camera: Camera, T_vehicle_camera,
                      reference: int | None = None, Q=None, segments=None, config: dict | None = None
                      ) -> RefineResult:
     """Refine (or reject) the landmarks of N classifiers from their detections over a window.
 
     Parameters
     ----------
-    detections : Detections
+    detections : WindowDetections
         (N classifiers, F window frames).
     T_window_place : (F, 4, 4) array
         ``T_{j,p}``: the place (vehicle) frame in each window vehicle frame, from the odometry increments
@@ -564,8 +565,8 @@ def refine_landmarks(detections: Detections, T_window_place, camera: Camera, T_v
     RefineResult
     """
     cfg = merge_settings(default_config, config, "refinement")
-    if not isinstance(detections, Detections):
-        raise TypeError("detections must be a mapping.refine.Detections")
+    if not isinstance(detections, WindowDetections):
+        raise TypeError("detections must be a mapping.refine.WindowDetections")
     N, F = detections.shape
     T_wp = np.asarray(T_window_place, dtype=float)
     if T_wp.shape != (F, 4, 4):

@@ -65,7 +65,7 @@ from scenesig.surveys.io import atomic_write_bytes, atomic_write_text, fsync_dir
 from scenesig.surveys.run import SurveyRun, read_run
 from scenesig.surveys.settings import merge_settings
 
-__all__ = ["default_config", "Localisation", "find_run", "weak_places", "check_localisations", "update_map"]
+__all__ = ["default_config", "Localisation", "find_run", "weakly_localised_places", "check_localisations", "update_map"]
 
 JOURNAL = "update.jsonl"
 SUMMARY = "update_summary.json"
@@ -162,7 +162,7 @@ def _live_pose(loc: Localisation, frame: int, anchor: int) -> np.ndarray:
     return loc.poses[anchor] @ invert(odo[0]) @ odo[1]
 
 
-def weak_places(store: MapStore, loc: Localisation, config: dict | None = None) -> dict:
+def weakly_localised_places(store: MapStore, loc: Localisation, config: dict | None = None) -> dict:
     """Per place of the map: is the localisation weak there, why, and the live frame to add.
 
     Returns ``{index: record}`` with ``weak`` (bool), ``reason`` (``no_detection``, ``lost``,
@@ -509,7 +509,7 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
         runs.add(loc.run)
     gen = store.generation + 1
     t0 = time.perf_counter()
-    verdicts = {str(loc.folder): weak_places(store, loc, cfg) for loc in locs}
+    verdicts = {str(loc.folder): weakly_localised_places(store, loc, cfg) for loc in locs}
     summary = {"map": str(root), "generation": store.generation, "updated": [], "verdicts": verdicts,
                "seconds_per_updated_place": None, "bytes_added": 0}
     if store.history and store.history[-1].get("inputs") == inputs:

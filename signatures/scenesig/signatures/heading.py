@@ -58,7 +58,7 @@ from scenesig.signatures.augment import augment, synthesise
 from scenesig.signatures.colour import local_exact_histogram_match
 from scenesig.surveys.settings import merge_settings
 
-__all__ = ["default_config", "bank_config", "SignatureHeading", "estimate_heading_signatures", "vote_displacement",
+__all__ = ["default_config", "bank_config", "SignatureHeading", "estimate_heading_signatures", "densest_window_displacement",
            "augment"]
 
 log = logging.getLogger(__name__)
@@ -97,7 +97,7 @@ default_config = {
 # ---------------------------------------------------------------------------------- voting
 
 
-def vote_displacement(votes: np.ndarray, weights: np.ndarray | None = None,
+def densest_window_displacement(votes: np.ndarray, weights: np.ndarray | None = None,
                       window: float = 20.0) -> tuple[float, np.ndarray]:
     """Robust displacement from per-classifier votes.
 
@@ -406,7 +406,7 @@ def _vote_pair(det_map, det_live, cfg, scale, spread) -> PairRecord:
                  ** float(cfg["prob_weight"]), 0.0)
     w = w / ((1.0 + (sx / float(cfg["spread_sigma_px"])) ** 2) ** 2)[:, None]
     w = w * float(cfg["rank_decay"]) ** np.arange(n_top)[None, :]
-    est, inl = vote_displacement(votes.ravel(), w.ravel(), float(cfg["vote_window_px"]))
+    est, inl = densest_window_displacement(votes.ravel(), w.ravel(), float(cfg["vote_window_px"]))
     return PairRecord(est, det_map.boxes(0) / scale, det_live.boxes(0) / scale, votes[:, 0],
                       fired[:, 0], inl.reshape(votes.shape).any(axis=1), len(votes), spread,
                       live_top=np.stack([det_live.x, det_live.prob], axis=2),

@@ -14,7 +14,7 @@ both use these pieces, so each stage is its own function:
    Based on M2Det", CMC 2023, eq. 6-7: keep a match when ``d1 < d2 - mean(d2 - d1)``), grid-based
    motion statistics (:func:`gms_filter`; Bian et al. CVPR 2017), or none; optionally mutual
    (cross-checked) nearest neighbours, and optionally guided (a mask of the pairs allowed).
-3. :func:`vote_displacement` -- histogram voting of the matches' horizontal offsets: the most
+3. :func:`histogram_displacement` -- histogram voting of the matches' horizontal offsets: the most
    populated 20-px bin wins and the estimate is the mean offset inside it (as the GRIEF evaluation
    code does).  ``voting="fixed"`` uses a grid of bins aligned at 0 (the plain reading of
    "20-px bins"); ``voting="sliding"`` slides the bin over all positions, which is what GRIEF's
@@ -36,7 +36,7 @@ from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "PointFeatures", "Matches", "Vote", "extract", "match", "gms_filter",
            "gms_default_config",
-           "vote_displacement", "estimate_displacement", "FEATURE_KINDS", "MATCH_FILTERS", "FeatureCache",
+           "histogram_displacement", "estimate_displacement", "FEATURE_KINDS", "MATCH_FILTERS", "FeatureCache",
            "feature_cache", "active_feature_cache"]
 
 FEATURE_KINDS = ("orb", "sift", "rootsift", "xfeat")
@@ -548,7 +548,7 @@ def gms_filter(xy_a: np.ndarray, xy_b: np.ndarray, size_a, size_b, grid="auto",
     return keep
 
 
-def vote_displacement(dx: np.ndarray, bin_px: float = 20.0, voting: str = "sliding",
+def histogram_displacement(dx: np.ndarray, bin_px: float = 20.0, voting: str = "sliding",
                       estimate: str = "mean", origin: float = 0.0,
                       dy: np.ndarray | None = None, max_dy: float | None = None) -> Vote:
     """Histogram voting over horizontal offsets.
@@ -620,5 +620,5 @@ def estimate_displacement(a: PointFeatures, b: PointFeatures,
     m = match(a, b, **cfg["match"])
     dx = b.xy[m.train, 0] - a.xy[m.query, 0]
     dy = b.xy[m.train, 1] - a.xy[m.query, 1]
-    vote = vote_displacement(dx, dy=dy, **cfg["vote"])
+    vote = histogram_displacement(dx, dy=dy, **cfg["vote"])
     return vote, m
