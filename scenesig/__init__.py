@@ -4,7 +4,8 @@ and the front door of the library:
 * :func:`scenesig.build_map` -- survey runs -> a map (the build summary);
 * :func:`scenesig.localise` -- a map and a run -> a :class:`scenesig.api.Localisation` in memory (times,
   poses, the per-frame table, ``metrics()``, ``write(dir)``);
-* :func:`scenesig.compare` -- a map, runs and methods -> one row of metrics per run and method.
+* :func:`scenesig.compare` -- a map, runs and methods -> one row of metrics per run and method;
+* :class:`scenesig.Map` -- ``Map.open(path)``: a map's layers, places, identity, settings and build summary.
 
 They are imported on first use (``import scenesig`` stays light).  The library packages below
 (``localiser`` → ``mapping`` → ``signatures`` → ``surveys``) expose plain functions and never import this
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 from pathlib import Path as _Path
 
-__all__ = ["build_map", "localise", "compare"]
+__all__ = ["build_map", "localise", "compare", "Map"]
 
 # Each library layer is a source root of this package in the checkout (``mapping/scenesig/mapping/build.py``
 # is ``scenesig.mapping.build``; the application layer's root is the repository itself).  Installed from a
@@ -30,6 +31,10 @@ if (_CHECKOUT / "pyproject.toml").is_file():
 
 
 def __getattr__(name):
+    if name == "Map":
+        from scenesig.maps import Map
+
+        return Map
     if name in __all__:
         from scenesig import api
 

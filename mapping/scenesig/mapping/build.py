@@ -56,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from scenesig.mapping import georef as georef_mod, layers as layers_mod, places as places_mod
-from scenesig.mapping.build_summary import _append_stats, _read_stats, _weak_message, _write_summary
+from scenesig.mapping.build_summary import BuildSummary, _append_stats, _read_stats, _weak_message, _write_summary
 from scenesig.mapping.pointmap import build_point_features, build_point_features_all
 from scenesig.mapping.refine import REASONS, WindowDetections, refine_landmarks
 from scenesig.mapping.selection import (
@@ -405,8 +405,10 @@ def _check_resolutions(train: list[SurveyRun]) -> None:
 
 def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, scheduler: str | None = None,
               config: dict | None = None, progress: bool = True, places_subset=None,
-              skip_corrupt: bool = False) -> dict:
-    """Build (or resume) a map from survey runs; returns the build summary (also written to disk).
+              skip_corrupt: bool = False) -> BuildSummary | dict:
+    """Build (or resume) a map from survey runs; returns the build summary (:class:`BuildSummary`, also
+    written to disk as ``build_summary.json``; a build of ``places_subset`` that leaves places unbuilt returns
+    ``{"partial": True, "built": [...]}``).
 
     Parameters
     ----------
@@ -544,7 +546,7 @@ def build_map(runs: list[SurveyRun], reference: SurveyRun, out, jobs: int = 1, s
     summary = _write_summary(out, places, allstats, time.perf_counter() - t0, corrupt_files)
     if summary["places_weak"]:
         log.warning(_weak_message(summary, allstats))
-    return summary
+    return BuildSummary.from_dict(summary)
 
 
 def _refuse_empty_map(out: Path, writer: MapWriter, places, allstats: dict, seconds: float) -> None:

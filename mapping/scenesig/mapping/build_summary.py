@@ -5,11 +5,16 @@ depth errors against simulator truth, build time per layer) are journalled as th
 they survive an interrupted build; once the places are built, :func:`_write_summary` aggregates them --
 with the stored bytes per place, part and layer -- into ``build_summary.json``.  Places with fewer than
 :data:`scenesig.mapping.coverage.MIN_SIGNATURES` signatures are reported as weak (McManus et al. 2015, §3.2).
+:class:`BuildSummary` is that file, typed: what :func:`scenesig.build_map` returns and
+:meth:`BuildSummary.read` reads back.
 """
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -18,7 +23,94 @@ from scenesig.mapping.coverage import MIN_SIGNATURES
 from scenesig.mapping.refine import REASONS
 from scenesig.surveys.io import append_line, atomic_write_bytes
 
-__all__: list[str] = []
+__all__ = ["BuildSummary"]
+
+
+@dataclass(frozen=True, eq=False)
+class BuildSummary(Mapping):
+    """A map's build summary (``build_summary.json``), typed.
+
+    The attributes are the file's keys; the object is also a read-only mapping of exactly the file's
+    content (``summary["places"]``, ``dict(summary)``), so code written against the JSON keeps working.
+    A key this class does not know (a newer writer) is kept in the mapping; a key an older map lacks is
+    ``None``.
+
+    Attributes
+    ----------
+    places : number of places built.
+    signatures_per_place_mean : mean signatures kept per place.
+    features : the cell descriptor the banks were mined on (``hog``, ``xfeat``, ``hog+xfeat``).
+    layers : the map layers built (:mod:`scenesig.mapping.layers`).
+    places_weak : places with fewer than ``min_signatures`` signatures.
+    per_place : per place: runs, images, frames, augmented copies, signatures, rejected shapes by reason.
+    seconds : build wall time.
+    (and the byte, time, landmark-depth and rejection statistics named like the file's keys)
+    """
+
+    places: int
+    signatures_per_place_mean: float
+    features: str | None = None
+    bytes_per_place_mean: float | None = None
+    bytes_per_place_by_part_mean: dict[str, float] | None = None
+    layers: list[str] | None = None
+    bytes_per_place_by_layer_mean: dict[str, float] | None = None
+    seconds_per_place_by_layer_mean: dict[str, float] | None = None
+    seconds_per_place_mean: float | None = None
+    landmark_depth_rel_error_median: float | None = None
+    landmark_depth_rel_error_quartiles: list[float] | None = None
+    landmarks_with_truth: int | None = None
+    landmark_depth_rel_error_median_single_depth: float | None = None
+    landmarks_single_depth: int | None = None
+    rejected: dict[str, int] | None = None
+    frames_corrupt: int | None = None
+    corrupt_frames: list[str] | None = None
+    places_weak: list[int] | None = None
+    min_signatures: int | None = None
+    per_place: list[dict] | None = None
+    seconds: float | None = None
+    _doc: dict = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> "BuildSummary":
+        known = {f.name for f in fields(cls) if f.name != "_doc"}
+        return cls(**{k: v for k, v in doc.items() if k in known}, _doc=dict(doc))
+
+    @classmethod
+    def read(cls, map_root) -> "BuildSummary":
+        """The summary of the map at ``map_root`` (its ``build_summary.json``)."""
+        from scenesig.surveys.errors import DataError
+
+        path = Path(map_root) / "build_summary.json"
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise DataError(path, "no build summary: the map was not built by build-map (or the build did not "
+                                  "finish)") from None
+        except json.JSONDecodeError as e:
+            raise DataError(path, f"not valid JSON: {e}") from None
+        if not isinstance(doc, dict) or "places" not in doc:
+            raise DataError(path, "not a build summary (no 'places')")
+        return cls.from_dict(doc)
+
+    def to_dict(self) -> dict:
+        """The file's content (a copy)."""
+        return json.loads(json.dumps(self._doc))
+
+    def __getitem__(self, key: str) -> Any:
+        return self._doc[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._doc)
+
+    def __len__(self) -> int:
+        return len(self._doc)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Mapping) and dict(self._doc) == dict(other)
+
+    def __repr__(self) -> str:
+        return (f"BuildSummary(places={self.places}, signatures_per_place_mean={self.signatures_per_place_mean}, "
+                f"layers={self.layers}, places_weak={self.places_weak})")
 
 
 def _weak_message(summary: dict, allstats: dict) -> str:
