@@ -19,7 +19,7 @@ The weak-localiser interface (:class:`MotionPrior`, :class:`Measurement`, :class
 method registry (:func:`register_method`, :func:`available_methods`, :func:`make_method`) live in
 :mod:`scenesig.localiser.methods`; the scene-signature method (:class:`SignatureLocaliser`,
 :data:`signature_default_config`) in :mod:`scenesig.localiser.signature_method`.  This module re-exports
-them, so imports from ``scenesig.localiser.pipeline`` keep working; point features (ORB / SIFT / XFeat) and the
+them (the localiser's whole interface is importable from here); point features (ORB / SIFT / XFeat) and the
 hybrid plug in as other registered implementations, and everything else (replay, failure rule, outputs,
 metrics) is shared.
 

@@ -31,7 +31,7 @@ class BuildSummary(Mapping):
     """A map's build summary (``build_summary.json``), typed.
 
     The attributes are the file's keys; the object is also a read-only mapping of exactly the file's
-    content (``summary["places"]``, ``dict(summary)``), so code written against the JSON keeps working.
+    content (``summary["places"]``, ``dict(summary)``): code may read it as the typed object or as the JSON.
     A key this class does not know (a newer writer) is kept in the mapping; a key an older map lacks is
     ``None``.
 
