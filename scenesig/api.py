@@ -40,8 +40,9 @@ def _read(run):
 
 
 def build_map(runs, reference, out, *, layers=None, jobs: int = 1, scheduler=None, config: dict | None = None,
-              preset: str | None = None, progress: bool = True, skip_corrupt: bool = False) -> dict:
-    """Build (or resume) a map; returns the build summary (``build_summary.json``'s content).
+              preset: str | None = None, progress: bool = True, skip_corrupt: bool = False):
+    """Build (or resume) a map; returns the build summary, a :class:`scenesig.mapping.build_summary.BuildSummary`
+    (typed attributes; also a mapping of ``build_summary.json``'s content).
 
     Parameters
     ----------

@@ -354,7 +354,7 @@ def run_demo(out="out/demo", jobs: int = 2, config: dict | None = None) -> dict:
     t = time.perf_counter()
     build = build_map([runs[n] for n in train_names], runs[ref_name], out / "map", jobs=jobs,
                       config={"layers": layers})
-    from scenesig.localiser import firing      # the integrity monitor's sequential test needs the places' rates
+    from scenesig.localiser import firing  # the integrity monitor's sequential test needs the places' rates
 
     firing.for_map(out / "map", [runs[n] for n in train_names])
     stages["build_map"] = time.perf_counter() - t

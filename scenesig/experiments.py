@@ -30,18 +30,16 @@ from pathlib import Path
 
 import numpy as np
 
+from scenesig.localiser.evaluation import dead_reckoning_curve, lateral_heading_errors, travelled
+from scenesig.localiser.outputs import read_output_files, reference_path
+from scenesig.localiser.pointmethod import match_to_map, resolve_config as resolve_point_config
 from scenesig.mapping.pointmap import point_features
 from scenesig.mapping.store import MapStore
 from scenesig.signatures.bank import Bank
-from scenesig.surveys.settings import merge_settings
 from scenesig.surveys.errors import DataError
 from scenesig.surveys.geometry import interpolate_poses, yaw_of
 from scenesig.surveys.run import SurveyRun, read_run
-
-from scenesig.localiser.evaluation import dead_reckoning_curve, lateral_heading_errors, travelled
-from scenesig.localiser.outputs import read_output_files, reference_path
-from scenesig.localiser.pointmethod import resolve_config as resolve_point_config
-from scenesig.localiser.pointmethod import match_to_map
+from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "resolve_config", "MatchingResult", "aligned_frame", "signature_matches", "point_matches",
            "matching_experiment", "LocaliseOutput", "read_localise_output", "find_localise_outputs",

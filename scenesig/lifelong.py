@@ -56,7 +56,6 @@ def _row(label: str, map_name: str, metrics: dict) -> dict:
 
 def _localise(map_root: Path, run_root: Path, out: Path, every: int) -> dict:
     from scenesig.localiser.replay import localise
-
     from scenesig.mapping.store import MapStore
 
     done = out / "metrics.json"

@@ -96,11 +96,11 @@ def resolve_settings(preset: str | None = None, config: Mapping | None = None) -
     """Every stage's settings as the library resolves them, with ``preset`` and ``config`` (``{stage:
     overrides}``) applied: ``build`` (:func:`scenesig.mapping.build.resolve_config`), ``localise`` per method
     (:func:`scenesig.localiser.replay.resolve_config`), ``update`` and ``experiment``."""
+    from scenesig.experiments import resolve_config as experiment_config
     from scenesig.localiser.pipeline import available_methods
     from scenesig.localiser.replay import resolve_config as replay_config
     from scenesig.mapping.build import resolve_config as build_config
     from scenesig.mapping.update import default_config as update_default
-    from scenesig.experiments import resolve_config as experiment_config
     from scenesig.surveys.settings import merge_settings
 
     config = dict(config or {})

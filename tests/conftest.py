@@ -53,7 +53,7 @@ def tiny_world(tmp_path_factory):
 
 def make_run(n_frames=5, with_truth=True, size=(64, 48), seed=0):
     """A small synthetic SurveyRun (in memory) and its images."""
-    from scenesig.surveys.geometry import Camera, make_pose, rot_z, CAMERA_FROM_VEHICLE_AXES
+    from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, make_pose, rot_z
     from scenesig.surveys.run import SurveyRun
 
     rng = np.random.default_rng(seed)

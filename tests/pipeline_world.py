@@ -11,7 +11,15 @@ import numpy as np
 from scenesig.localiser.pipeline import Measurement, WeakLocaliser
 from scenesig.localiser.solver import LocalisationConstraint, pose_exp
 from scenesig.mapping.store import MapWriter, PlaceData
-from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, interpolate_poses, invert, make_pose, rot_y, rot_z
+from scenesig.surveys.geometry import (
+    CAMERA_FROM_VEHICLE_AXES,
+    Camera,
+    interpolate_poses,
+    invert,
+    make_pose,
+    rot_y,
+    rot_z,
+)
 from scenesig.surveys.run import SurveyRun, write_run
 
 HZ = 20.0

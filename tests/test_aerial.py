@@ -244,8 +244,8 @@ def test_benchmark_json_contract_and_determinism(tmp_path):
 def test_benchmark_folds_report_held_out_tiles_only(tmp_path, capsys):
     """--folds K: tile i is in fold i mod K; settings chosen on the other folds' tiles; every trial
     of a fold is drawn over its held-out tiles."""
-    from scenesig.benchmarks import aerial as bench
     from scenesig import cli
+    from scenesig.benchmarks import aerial as bench
 
     root = _write_tiles(tmp_path / "tiles", n=3)
     doc = bench.run_benchmark(root, ["sism", "orb"], trials=4, seed=3, json_path=tmp_path / "o" / "a.json",

@@ -8,8 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from scenesig.aerial import kdmm
-from scenesig.aerial import measures as ms
+from scenesig.aerial import kdmm, measures as ms
 from scenesig.aerial.deform import make_trial_variant
 from scenesig.aerial.kdm import fit_kdm
 from scenesig.aerial.trials import make_trial

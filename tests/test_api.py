@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from build_world import CONFIG, map_contents
 
 pytest.importorskip("scenesig.surveys.sim.simulate")
@@ -67,9 +66,9 @@ def test_api_build_is_the_cli_build(tiny_world, tmp_path):
 
 
 def test_api_localise_is_the_cli_localise(tiny_world, tmp_path):
-    from scenesig.localiser.outputs import read_frames_csv
     from scenesig import api
     from scenesig.cli import main
+    from scenesig.localiser.outputs import read_frames_csv
     from scenesig.surveys.tum import read_tum
 
     runs, root = tiny_world

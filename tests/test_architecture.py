@@ -1,12 +1,13 @@
-"""The import contract (pyproject.toml [tool.importlinter], docs/architecture.md) holds: ``lint-imports``.
+"""The layout and the import contract (pyproject.toml, docs/architecture.md "Layout"): one import identity per
+file, no links, ``lint-imports`` passes and no layer imports itself in a cycle.
 
-Installed, the layers are subpackages of ``scenesig`` while their folders stay at the top of the
-repository (``[tool.setuptools.package-dir]``).  In the checkout, ``scenesig/<layer>`` is a symbolic link
-to the layer's folder, so the repository root reads as the installed package: ``lint-imports`` run there
-(as a developer would) analyses every layer.
+Each layer folder is a source root of the ``scenesig`` package (``mapping/scenesig/mapping/build.py`` is
+``scenesig.mapping.build``); the application layer's root is the repository itself.  In the checkout
+``scenesig/__init__.py`` appends the layer roots to its ``__path__`` (and so to its spec, which grimp reads):
+``.ci/lint imports`` imports the package, then runs ``lint-imports``.
 """
+import json
 import os
-import shutil
 import subprocess
 import sys
 import tomllib
@@ -33,11 +34,78 @@ def _app_modules() -> set[str]:
     return own - layers
 
 
-def test_every_top_level_package_is_installed_under_scenesig():
-    """A new top-level folder with an __init__.py (e.g. aerial/) must be mapped, not silently left out."""
-    mapped = set(_package_dirs().values())
-    folders = {p.parent.name for p in ROOT.glob("*/__init__.py")} - {"tests"}
-    assert folders <= mapped, f"map {sorted(folders - mapped)} in [tool.setuptools.package-dir]"
+def _layer_roots() -> dict[str, Path]:
+    """``{layer: its source root}`` from package-dir (``"scenesig.mapping" = "mapping/scenesig/mapping"``)."""
+    return {name.split(".", 1)[1]: ROOT / folder.split("/", 1)[0]
+            for name, folder in _package_dirs().items() if "." in name}
+
+
+def test_every_layer_folder_is_a_source_root_installed_under_scenesig():
+    """A top-level folder holding ``scenesig/<layer>/`` must be mapped as ``<layer>/scenesig/<layer>``; no
+    top-level folder but the application layer's is itself a package (it would be a second import name)."""
+    dirs = _package_dirs()
+    for folder in sorted({p.relative_to(ROOT).parts[0] for p in ROOT.glob("*/scenesig/*/__init__.py")} - {"scenesig"}):
+        assert dirs.get(f"scenesig.{folder}") == f"{folder}/scenesig/{folder}", \
+            f'map "scenesig.{folder}" = "{folder}/scenesig/{folder}" in [tool.setuptools.package-dir]'
+    stray = sorted(p.parent.name for p in ROOT.glob("*/__init__.py"))
+    assert stray == ["scenesig"], f"folders importable under their own name from the checkout: {stray}"
+    import scenesig
+
+    assert set(_layer_roots()) == set(scenesig._LAYERS), "scenesig/__init__.py's _LAYERS and package-dir differ"
+
+
+def test_no_module_outside_its_source_root():
+    """A module left in a layer folder's old place (``localiser/session.py``) is not importable as
+    ``scenesig.localiser.session``: move it under ``localiser/scenesig/localiser/`` (``git mv``)."""
+    stray = sorted(str(p.relative_to(ROOT)) for layer, root in _layer_roots().items() for p in root.rglob("*")
+                   if p.is_file() and "__pycache__" not in p.parts
+                   and not p.is_relative_to(root / "scenesig" / layer))
+    assert not stray, f"files outside their layer's source root (<layer>/scenesig/<layer>/): {stray}"
+
+
+def test_no_symbolic_links_are_tracked():
+    listed = subprocess.run(["git", "ls-files", "-s"], cwd=ROOT, capture_output=True, text=True)
+    if listed.returncode != 0:
+        pytest.skip(f"not a git checkout: {listed.stderr.strip()}")
+    links = [line.split("\t", 1)[1] for line in listed.stdout.splitlines() if line.startswith("120000")]
+    assert not links, f"symbolic links in the repository: {links}"
+
+
+def test_one_import_identity_per_file():
+    """From the repository root every module's file is the file at its path under its source root, and the
+    layer folders are not packages of their own (``import mapping.store`` fails)."""
+    code = r"""
+import importlib, json, pkgutil, sys
+import scenesig
+out = {"scenesig": scenesig.__file__}
+for m in pkgutil.walk_packages(scenesig.__path__, "scenesig."):
+    if not m.name.endswith("__main__"):
+        out[m.name] = importlib.import_module(m.name).__file__
+bad = []
+for name in ("mapping.store", "surveys.run", "benchmarks.heading", "scenesig.scenesig"):
+    try:
+        importlib.import_module(name)
+        bad.append(name)
+    except ImportError:
+        pass
+print(json.dumps({"files": out, "importable": bad}))
+"""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=600,
+                          env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    got = json.loads(proc.stdout.splitlines()[-1])
+    assert got["importable"] == [], f"second import names from the repository root: {got['importable']}"
+    roots = _layer_roots()
+    for name, file in got["files"].items():
+        parts = name.split(".")
+        root = roots.get(parts[1], ROOT) if len(parts) > 1 else ROOT
+        rel = Path(file).resolve().relative_to(root)
+        expected = Path(*parts, "__init__.py") if rel.name == "__init__.py" else Path(*parts).with_suffix(".py")
+        assert rel == expected, f"{name} is {file}, not {root / expected}"
+    on_disk = {p.resolve() for root in {ROOT / "scenesig", *(r / "scenesig" for r in _layer_roots().values())}
+               for p in root.rglob("*.py") if p.name != "__main__.py"}
+    assert {Path(f).resolve() for f in got["files"].values()} == on_disk
 
 
 def test_every_application_module_is_forbidden_to_the_layers():
@@ -48,23 +116,85 @@ def test_every_application_module_is_forbidden_to_the_layers():
         f"application modules {sorted(_app_modules() ^ listed)} missing from (or stale in) the contract")
 
 
-def test_every_layer_is_linked_into_the_package():
-    """``scenesig/<layer>`` links to the layer's folder, as package-dir maps it (else lint-imports and a
-    run from the checkout would not see the layer)."""
-    for name, folder in _package_dirs().items():
-        if "." in name:
-            link = ROOT / "scenesig" / name.split(".", 1)[1]
-            assert link.is_symlink() and link.resolve() == (ROOT / folder).resolve(), \
-                f"scenesig/{link.name} must be a symbolic link to ../{folder}"
-
-
 def test_lint_imports_passes():
-    exe = shutil.which("lint-imports") or str(Path(sys.executable).with_name("lint-imports"))
-    if not Path(exe).exists():
-        pytest.fail("lint-imports not found: install the test extras (pip install -e '.[test]')")
+    """``.ci/lint imports``: the contract, over every layer (grimp sees them all: as many files as before the
+    relayout, not just the application layer's)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}   # this checkout, not an installed copy
-    proc = subprocess.run([exe, "--no-cache"], cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
+    proc = subprocess.run(["bash", str(ROOT / ".ci" / "lint"), "imports"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300, env=env)
     assert proc.returncode == 0 and " 0 broken" in proc.stdout, proc.stdout[-4000:] + proc.stderr[-2000:]
+    analysed = int(proc.stdout.split("Analyzed ", 1)[1].split(" files", 1)[0])
+    assert analysed > 150, f"lint-imports saw {analysed} files: not every layer"
+
+
+def _graph():
+    grimp = pytest.importorskip("grimp", reason="grimp comes with import-linter (the test extras)")
+    import scenesig  # noqa: F401  -- appends the layer roots to the package's spec, which grimp reads
+
+    return grimp.build_graph("scenesig", cache_dir=None)
+
+
+def _cycles(graph, package: str) -> list[list[str]]:
+    """Strongly connected components (more than one module) of the imports among ``package``'s modules."""
+    mods = sorted(m for m in graph.modules if m == package or m.startswith(package + "."))
+    edges = {m: sorted(d for d in graph.find_modules_directly_imported_by(m) if d in mods) for m in mods}
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):                       # Tarjan's algorithm (recursion depth <= the layer's module count)
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in edges[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for m in mods:
+        if m not in index:
+            visit(m)
+    return out
+
+
+def test_cycle_finder_finds_a_cycle():
+    class G:
+        modules = {"p", "p.a", "p.b", "p.c"}
+
+        @staticmethod
+        def find_modules_directly_imported_by(m):
+            return {"p.a": {"p.b"}, "p.b": {"p.a", "p.c"}}.get(m, set())
+
+    assert _cycles(G, "p") == [["p.a", "p.b"]]
+
+
+# Cycles inside a layer not yet removed (issue 37): the localiser's result modules (outputs imports the
+# replay's ReplayResult, replay re-exports outputs' names; plots and uncertainty read outputs' truth helpers),
+# left until the replay becomes a driver over a Session and the result types are unified.  Only shrinks.
+KNOWN_CYCLES = {
+    "localiser": [["scenesig.localiser.outputs", "scenesig.localiser.plots", "scenesig.localiser.replay",
+                   "scenesig.localiser.uncertainty"]],
+}
+
+
+def test_no_import_cycle_inside_a_layer():
+    """No module of a layer imports itself through others of the same layer (a package's ``__init__``
+    included): a cycle means the modules cannot be read, tested or moved one at a time."""
+    graph = _graph()
+    found = {layer: _cycles(graph, f"scenesig.{layer}") for layer in _layer_roots()}
+    found = {layer: c for layer, c in found.items() if c}
+    expected = {layer: c for layer, c in KNOWN_CYCLES.items() if c}
+    assert found == expected, f"import cycles inside a layer: {found}"
 
 
 def test_architecture_doc_names_every_module_and_benchmark():
@@ -77,9 +207,10 @@ def test_architecture_doc_names_every_module_and_benchmark():
     root = Path(__file__).resolve().parents[1]
     doc = (root / "docs" / "architecture.md").read_text(encoding="utf-8")
     missing = []
-    for pkg in ("surveys", "signatures", "mapping", "localiser", "aerial", "scenesig"):
-        for path in sorted((root / pkg).rglob("*.py")):
-            rel = path.relative_to(root / pkg)
+    folders = {layer: root / layer / "scenesig" / layer for layer in _layer_roots() if layer != "benchmarks"}
+    for pkg, folder in {**folders, "scenesig": root / "scenesig"}.items():
+        for path in sorted(folder.rglob("*.py")):
+            rel = path.relative_to(folder)
             if path.name in ("__init__.py", "__main__.py"):
                 continue
             if len(rel.parts) > 1:              # a sub-package: its folder named is enough

@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from build_world import CONFIG, SHAPES
 from conftest import SHARED_DATA
 

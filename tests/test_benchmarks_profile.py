@@ -2,11 +2,10 @@
 import json
 
 import numpy as np
+from pipeline_world import make_live_run, make_map
 
 from scenesig.benchmarks import profile_localise, profile_mining
 from scenesig.benchmarks._stages import StageTimer
-
-from pipeline_world import make_live_run, make_map
 
 
 class _Clock:

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from build_world import CONFIG, map_contents
 
 pytest.importorskip("scenesig.surveys.sim.simulate")

@@ -1,9 +1,10 @@
-"""``scenesig demo`` end to end on the tiny world: every stage runs, summary.json has the README's schema,
+"""``scenesig demo`` end to end on the tiny world: every stage runs, summary.json has docs/cli.md's schema,
 the report is written, and a re-run reuses what is there."""
 import json
 import os
 
 import pytest
+from conftest import SHARED_MODELS
 
 from scenesig.cli import main
 from scenesig.demo import default_config
@@ -13,8 +14,6 @@ METRIC_KEYS = {"method", "run", "lateral_error_m", "heading_error_deg", "localis
                "ms_per_odometry_update", "realtime_factor", "method_config", "oracle", "oracle_reads", "first_fix_m",
                "relocalisations", "false_fixes", "relocalise_m"}
 
-
-from conftest import SHARED_MODELS
 
 XFEAT = SHARED_MODELS / "xfeat" / "xfeat.onnx"
 

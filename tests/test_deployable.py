@@ -10,13 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from scenesig.localiser.outputs import TRUTH_KEYS, evaluate_folder, read_frames_csv, write_outputs
-from scenesig.localiser.replay import replay
-from scenesig.cli import main
-from scenesig.surveys.run import read_run
-
 from pipeline_world import TruthMethod, make_live_run, make_map
+
+from scenesig.cli import main
+from scenesig.localiser.outputs import TRUTH_KEYS, read_frames_csv, write_outputs
+from scenesig.localiser.replay import replay
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -161,8 +159,9 @@ def _map_relative(res, store):
 
 def test_bounds_grow_while_dead_reckoning(world):
     """Blind stretches: the marginal (and so the bound) grows with the odometry since the last fix."""
-    from scenesig.localiser.uncertainty import bounds_from_result
     from pipeline_world import SPEED
+
+    from scenesig.localiser.uncertainty import bounds_from_result
 
     _, run, store = world
     res = replay(store, run, TruthMethod(run, blind=[(20.0, 38.0)]), every=2)
@@ -197,6 +196,7 @@ def test_posegraph_covariance_at_a_time_matches_the_latest_and_grows_with_odomet
 def tiny(tmp_path_factory):
     """The tiny map and its night run's localisation (shared with tests/test_update.py)."""
     from build_world import tiny_map, tiny_runs
+
     from scenesig.localiser.replay import localise
 
     base = tmp_path_factory.getbasetemp()
@@ -337,10 +337,11 @@ def test_aerial_query_outside_every_tile_is_not_localised(tmp_path):
     the tile whose best match failed its checks; the same images on their own tile still localise."""
     import shutil as sh
 
+    from test_aerial import _write_tiles
+
     from scenesig.aerial.geo import load_tiles
     from scenesig.aerial.localise import localise_sequence
     from scenesig.aerial.trials import write_sequence
-    from test_aerial import _write_tiles
 
     root = _write_tiles(tmp_path / "tiles", n=2)
     lines = (root / "map.csv").read_text().splitlines()
@@ -369,6 +370,7 @@ def test_aerial_query_outside_every_tile_is_not_localised(tmp_path):
 
 def test_build_map_with_a_run_of_another_resolution_exits_2_and_leaves_nothing(tmp_path, capsys):
     from conftest import make_run
+
     from scenesig.surveys.geometry import Camera
     from scenesig.surveys.run import write_run
 
@@ -390,6 +392,7 @@ def test_check_reports_every_problem_of_a_run(tmp_path):
     """A swapped frames.csv line does not stop the image checks; NaN and unsorted timestamps in one
     odometry.csv are both reported."""
     from conftest import make_run
+
     from scenesig.surveys.check import check_run
     from scenesig.surveys.run import write_run
 

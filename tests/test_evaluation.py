@@ -4,8 +4,15 @@ import json
 import numpy as np
 import pytest
 
-from scenesig.localiser.evaluation import (ReferencePath, blind_distances, coverage_metrics, dead_reckoning_curve,
-                                  evaluate, lateral_heading_errors, summary)
+from scenesig.localiser.evaluation import (
+    ReferencePath,
+    blind_distances,
+    coverage_metrics,
+    dead_reckoning_curve,
+    evaluate,
+    lateral_heading_errors,
+    summary,
+)
 from scenesig.surveys.geometry import make_pose, rot_z
 
 

@@ -4,20 +4,25 @@ import json
 
 import numpy as np
 import pytest
+from point_world import CAMERA, T_VC, camera_pose, planes, render, vehicle_pose
 
-from scenesig.experiments import (aligned_frame, dead_reckoning, find_localise_outputs, frame_distances,
-                                   matching_experiment, read_localise_output, signature_matches)
-from scenesig.plots import localisation_figures, write_matching
+from scenesig.experiments import (
+    aligned_frame,
+    dead_reckoning,
+    find_localise_outputs,
+    frame_distances,
+    matching_experiment,
+    read_localise_output,
+    signature_matches,
+)
 from scenesig.mapping.pointmap import triangulate_keyframe
 from scenesig.mapping.store import MapStore, MapWriter, PlaceData
+from scenesig.plots import localisation_figures, write_matching
 from scenesig.signatures.bank import Bank, Classifier
-from scenesig.signatures.hog import default_config as hog_default
-from scenesig.signatures.hog import fhog
+from scenesig.signatures.hog import default_config as hog_default, fhog
 from scenesig.surveys.errors import DataError
 from scenesig.surveys.geometry import make_pose, rot_z
 from scenesig.surveys.run import SurveyRun, read_run, write_run
-
-from point_world import CAMERA, T_VC, camera_pose, planes, render, vehicle_pose
 
 T_WORLD_ROAD = make_pose(rot_z(0.3), [100.0, 50.0, 0.0])   # the road's frame in the world
 PLACE_X = (0.0, 10.0)
@@ -129,6 +134,7 @@ def test_matching_experiment_counts_and_heat_maps(matching_setup):
 @pytest.fixture(scope="module")
 def localise_outputs(tmp_path_factory):
     from pipeline_world import NothingMethod, TruthMethod, make_live_run, make_map
+
     from scenesig.localiser.replay import replay, write_outputs
 
     base = tmp_path_factory.mktemp("localised")

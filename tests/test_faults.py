@@ -16,9 +16,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from conftest import make_run
 from faultinject import disk_full, folder_bytes, read_only
+
 from scenesig.surveys.errors import CorruptImageError, DataError, OutputError
 from scenesig.surveys.images import decode_image, read_image
 
@@ -106,8 +106,9 @@ def _truncate(path: Path) -> None:
 
 
 def test_localise_skips_corrupt_frames_and_counts_them(world, tmp_path, caplog):
-    from scenesig.localiser.replay import replay, write_outputs
     from pipeline_world import TruthMethod
+
+    from scenesig.localiser.replay import replay, write_outputs
     from scenesig.surveys.run import read_run
 
     root, run, store = world
@@ -195,8 +196,9 @@ def test_check_lists_every_problem_of_a_run(tmp_path, capsys):
 
 
 def test_check_maps_and_folders(tmp_path, capsys):
-    from scenesig.surveys.run import write_run
     from test_store import build
+
+    from scenesig.surveys.run import write_run
 
     run, images = make_run(n_frames=8)
     write_run(run, tmp_path / "world" / "r1", images=images)
@@ -289,9 +291,10 @@ def test_a_figure_that_cannot_be_written_leaves_nothing(tmp_path):
 
 
 def test_report_on_a_full_disk_keeps_the_previous_page(world, tmp_path, monkeypatch):
+    from pipeline_world import TruthMethod
+
     from scenesig.localiser.replay import replay, write_outputs
     from scenesig.report import build_report
-    from pipeline_world import TruthMethod
 
     root, run, store = world
     write_outputs(replay(store, run, TruthMethod(run), every=4), store, tmp_path / "res" / "a")
@@ -314,8 +317,9 @@ def test_report_on_a_full_disk_keeps_the_previous_page(world, tmp_path, monkeypa
 
 
 def test_map_writer_on_a_full_disk_resumes_to_the_same_bytes(tmp_path, monkeypatch):
-    from scenesig.mapping.store import JOURNAL, MapWriter
     from test_store import CAM, N_PLACES, PARAMS, T_VC, build, make_place, places_meta
+
+    from scenesig.mapping.store import JOURNAL, MapWriter
 
     reference = folder_bytes(build(tmp_path / "ref"))
     root = tmp_path / "m"
@@ -359,9 +363,10 @@ def test_realtime_keeps_up_with_both_cores_loaded(world, tmp_path, monkeypatch):
     """Two CPU hogs (bounded: they stop on their own) and an odometry update that costs more CPU than
     the odometry rate allows: the replay still ends on time, the odometry backlog stays bounded by
     composing late samples, stale frames are dropped, and it still localises."""
+    from pipeline_world import TruthMethod
+
     from scenesig.localiser import pipeline
     from scenesig.localiser.replay import replay, write_outputs
-    from pipeline_world import TruthMethod
 
     root, run, store = world
     original = pipeline.Localiser.add_odometry
@@ -408,6 +413,7 @@ def tiny_world(tmp_path_factory):
 @pytest.mark.heavy
 def test_build_map_skip_corrupt_leaves_the_frames_out(tiny_world, tmp_path):
     from build_world import CONFIG
+
     from scenesig.mapping.build import build_map
     from scenesig.mapping.store import MapStore
     from scenesig.surveys.run import read_run
@@ -434,6 +440,7 @@ def test_build_map_skip_corrupt_leaves_the_frames_out(tiny_world, tmp_path):
 @pytest.mark.heavy
 def test_build_map_on_a_full_disk_resumes_to_the_same_bytes(tiny_world, tmp_path, monkeypatch, capsys):
     from build_world import CONFIG, map_contents
+
     from scenesig.cli import main as cli
 
     runs, reference = tiny_world

@@ -60,6 +60,7 @@ def test_three_run_map_has_signatures_everywhere_and_localises_a_day_run(world, 
 
 def test_one_run_map_builds_from_frames_and_augmented_copies(world, tmp_path, caplog):
     from build_world import SHAPES as SMALL_SHAPES
+
     from scenesig.mapping.build import build_map
 
     root, train, _ = world
@@ -121,19 +122,19 @@ def test_neighbour_frames_alternate_ahead_and_behind_within_the_segment():
 
 def test_six_runs_mine_exactly_the_papers_training_images():
     """Six runs or more: one frame per run, no augmentation -- such maps are built as before."""
-    from scenesig.mapping.build import frames_per_run, mining_images, _merge
+    from scenesig.mapping.build import _merge
+    from scenesig.mapping.selection import frames_per_run, mining_images
 
     rng = np.random.default_rng(0)
     images = [rng.integers(0, 255, (24, 32), dtype=np.uint8) for _ in range(6)]
     views = [_view(np.arange(0.0, 10.01, 0.5), frame=10) for _ in range(6)]
-    out, offsets, counts = mining_images(0, views, images)
+    out, offsets, counts = mining_images(0, views, images, _merge(None))
     assert len(out) == 6 and all(a is b for a, b in zip(out, images))
     assert not offsets.any() and counts == {"frames_per_run": 1, "frames": 6, "augmented": 0}
     cfg = _merge(None)
     assert [frames_per_run(cfg, n) for n in (1, 2, 3, 4, 5, 6, 12)] == [3, 3, 2, 2, 2, 1, 1]
     # one run, one frame each: augmented copies fill the place up to min_images, shifted as they report
-    out, offsets, counts = mining_images(0, views[:1], images[:1],
-                                         {"frames_per_run": 1})
+    out, offsets, counts = mining_images(0, views[:1], images[:1], _merge({"frames_per_run": 1}))
     assert counts == {"frames_per_run": 1, "frames": 1, "augmented": 5} and len(out) == 6
     assert all(o.shape == images[0].shape and o.dtype == np.uint8 for o in out)
     assert offsets[0].tolist() == [0.0, 0.0] and np.all(np.abs(offsets[1:, 0]) <= 8.0) and not offsets[:, 1].any()

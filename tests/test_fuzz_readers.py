@@ -17,10 +17,13 @@ import numpy as np
 import pytest
 
 hypothesis = pytest.importorskip("hypothesis", reason="hypothesis is needed (pip install -e '.[test]')")
-from hypothesis import given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-
 from conftest import make_run  # noqa: E402
+from hypothesis import (  # noqa: E402
+    given,
+    settings,
+    strategies as st,  # noqa: E402
+)
+
 from scenesig.surveys.errors import DataError  # noqa: E402
 
 HANG_SECONDS = 10
@@ -64,8 +67,9 @@ def _survey_files(tmp: Path) -> dict:
 
 
 def _map_files(tmp: Path) -> dict:
-    from scenesig.mapping.store import MapWriter
     from test_store import CAM, PARAMS, T_VC, make_place, places_meta
+
+    from scenesig.mapping.store import MapWriter
 
     w = MapWriter(tmp / "map", CAM, T_VC, PARAMS)
     for i in range(5):

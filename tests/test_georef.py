@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from scenesig.mapping.georef import (combine_estimates, georeference_places, smooth_corrections, solve_relative_pose)
+from scenesig.mapping.georef import combine_estimates, georeference_places, smooth_corrections, solve_relative_pose
 from scenesig.mapping.places import Place
 from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, rot_z, yaw_of
 

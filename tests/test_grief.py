@@ -8,7 +8,6 @@ import pytest
 from scenesig.surveys.errors import DataError
 from scenesig.surveys.grief import GriefPair, detect_layout, load
 
-
 # ---------------------------------------------------------------------------------- real data
 
 

@@ -1,6 +1,7 @@
 """Hybrid localisation: signature detections and point matches in one eq. 10 solve (localiser.hybrid)."""
 import numpy as np
 import pytest
+from test_pointmap import keyframe_map, point_store, world  # noqa: F401  (module fixtures)
 
 from scenesig.localiser.detector import Observation
 from scenesig.localiser.hybrid import HYBRID_METHODS, default_config, fuse, signature_agreement
@@ -8,8 +9,6 @@ from scenesig.localiser.pointmethod import PointObservation
 from scenesig.localiser.solver import pose_exp, pose_log, solve, solve_pnp_prior
 from scenesig.localiser.synthetic import synthetic_problem
 from scenesig.surveys.geometry import invert
-
-from test_pointmap import keyframe_map, point_store, world  # noqa: F401  (module fixtures)
 
 #: a loose prior (after a few metres of dead reckoning), so that a wrong point consensus could pass it
 PRIOR_SIGMAS = (0.01, 0.01, 0.03, 0.8, 0.8, 0.2)
@@ -137,9 +136,9 @@ def test_a_strong_point_consensus_makes_the_signatures_the_gate():
 
 
 def test_method_names_and_command_line_options():
+    from scenesig.commands.localise import METHODS
     from scenesig.localiser.pipeline import available_methods
     from scenesig.localiser.replay import method_options
-    from scenesig.commands.localise import METHODS
 
     assert set(HYBRID_METHODS) <= set(available_methods()) and set(HYBRID_METHODS) <= set(METHODS)
     assert method_options("hybrid") == {}
@@ -166,6 +165,7 @@ def test_hybrid_replay_on_the_tiny_world_writes_both_inlier_counts(tmp_path_fact
     frames.csv ends with signature_inliers, point_inliers; the metrics count both; no more failures and
     about as many localisations as the signatures alone (ORB finds nothing at night there)."""
     from build_world import tiny_map, tiny_runs
+
     from scenesig.localiser.outputs import FRAMES_COLUMNS, read_frames_csv
     from scenesig.localiser.replay import localise
 
@@ -198,9 +198,9 @@ def test_hybrid_replay_on_the_tiny_world_writes_both_inlier_counts(tmp_path_fact
 def test_live_features_at_half_resolution_are_in_full_image_pixels(kind, point_store, world):  # noqa: F811
     """``live_scale`` 0.5 (the cheap point extraction): keypoints come back in the full image's pixels with
     twice the noise, and match the same map points at the same places."""
-    from scenesig.localiser.pipeline import make_method
-
     from point_world import CAMERA, T_VC, camera_pose, render, vehicle_pose
+
+    from scenesig.localiser.pipeline import make_method
 
     store, _ = point_store
     live, _ = render(camera_pose(vehicle_pose(3.0, 0.8, np.radians(2.0))), world)

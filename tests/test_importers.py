@@ -9,8 +9,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from conftest import ROOT, SHARED_DATA, make_run
+
 from scenesig.surveys.errors import DataError
 from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, invert, make_pose, rot_x, rot_y, rot_z, yaw_of
 from scenesig.surveys.importers import euroc, kapture, kitti_raw, tum_rgbd

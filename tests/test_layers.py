@@ -1,13 +1,12 @@
 """Map layers (mapping.layers): names, what a method needs, what a map holds, and the localiser's refusal."""
 import numpy as np
 import pytest
+from point_world import CAMERA, T_VC
 
+from scenesig.cli import main
 from scenesig.mapping import layers
 from scenesig.mapping.store import MapStore, MapWriter, PlaceData
-from scenesig.cli import main
 from scenesig.surveys.errors import DataError
-
-from point_world import CAMERA, T_VC
 
 
 def test_parse_layers_adds_signatures_orders_and_rejects_unknown():
@@ -65,9 +64,9 @@ def test_localise_refuses_a_method_whose_layer_the_map_lacks(tmp_path):
 
 
 def test_cli_refuses_a_missing_layer_and_bad_layer_names(tmp_path, capsys):
-    from scenesig.surveys.run import write_run
-
     from conftest import make_run
+
+    from scenesig.surveys.run import write_run
 
     store = _store(tmp_path / "m", {})
     run, images = make_run(n_frames=4, size=(CAMERA.width, CAMERA.height))
@@ -83,10 +82,10 @@ def test_cli_refuses_a_missing_layer_and_bad_layer_names(tmp_path, capsys):
 
 
 def test_build_with_an_xfeat_layer_and_no_model_stops_before_writing(tmp_path, monkeypatch):
+    from conftest import make_run
+
     from scenesig.mapping.build import build_map
     from scenesig.signatures.xfeat import ModelNotFoundError
-
-    from conftest import make_run
 
     run, _ = make_run(n_frames=4)
     monkeypatch.setenv("SCENESIG_XFEAT_MODEL", str(tmp_path / "absent.onnx"))

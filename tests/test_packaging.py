@@ -1,7 +1,8 @@
 """One namespace: only ``scenesig`` is importable at top level, from an editable install and from a wheel.
 
-The layers' folders stay at the top of the repository (``[tool.setuptools.package-dir]`` maps
-``scenesig.mapping`` to ``mapping/`` and so on); these tests check what a user gets when they install it.
+The layers' folders stay at the top of the repository, each a source root of the package
+(``[tool.setuptools.package-dir]`` maps ``scenesig.mapping`` to ``mapping/scenesig/mapping`` and so on); these
+tests check what a user gets when they install it: every module once, from the files of the checkout.
 """
 import os
 import subprocess
@@ -11,8 +12,6 @@ import venv
 import zipfile
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parents[1]
 LAYERS = ("surveys", "signatures", "mapping", "localiser", "aerial", "benchmarks")
 
@@ -20,6 +19,39 @@ LAYERS = ("surveys", "signatures", "mapping", "localiser", "aerial", "benchmarks
 def _run(args, cwd, **kw):
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}   # what a user's shell has
     return subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=600, env=env, **kw)
+
+
+def _checkout_modules() -> list[str]:
+    """The package's files as the wheel should hold them: ``scenesig/<path under the package's folder>``."""
+    dirs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    out = []
+    for name, folder in dirs.items():
+        prefix = Path(*name.split("."))
+        nested = [Path(f) for n, f in dirs.items() if n != name and n.startswith(name + ".")]
+        for p in (ROOT / folder).rglob("*.py"):
+            if "__pycache__" in p.parts or any((ROOT / f) in p.parents for f in nested):
+                continue
+            out.append(str(prefix / p.relative_to(ROOT / folder)))
+    return sorted(out)
+
+
+def test_editable_install_imports_the_checkout(tmp_path):
+    """``pip install -e .`` in a fresh environment: the package and every layer come from this checkout's
+    files (each layer from its folder's source root), and the console script runs."""
+    env_dir = tmp_path / "venv"
+    venv.create(env_dir, system_site_packages=True, with_pip=True)
+    py = env_dir / "bin" / "python"
+    proc = _run([str(py), "-m", "pip", "install", "-q", "--no-deps", "-e", str(ROOT)], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    code = ("import scenesig, scenesig.mapping.store as s, scenesig.surveys.importers.kitti_raw as k; "
+            "assert callable(scenesig.build_map); print(scenesig.__file__); print(s.__file__); print(k.__file__)")
+    proc = _run([str(py), "-c", code], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == [str(ROOT / "scenesig" / "__init__.py"),
+                                   str(ROOT / "mapping" / "scenesig" / "mapping" / "store.py"),
+                                   str(ROOT / "surveys" / "scenesig" / "surveys" / "importers" / "kitti_raw.py")]
+    proc = _run([str(env_dir / "bin" / "scenesig"), "config", "show"], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
 
 
 def test_every_package_folder_is_listed():
@@ -63,6 +95,8 @@ def test_wheel_holds_only_scenesig_and_runs(tmp_path):
     assert {t for t in tops if not t.endswith(".dist-info")} == {"scenesig"}, sorted(tops)
     assert "scenesig/signatures/data/hog_background.npz" in names
     assert "scenesig/benchmarks/heading.py" in names and "scenesig/mapping/build.py" in names
+    # every module of the checkout once, at its import path (nothing left out, nothing twice)
+    assert sorted(n for n in names if n.endswith(".py")) == _checkout_modules()
     # a fresh environment that sees this machine's dependencies but not this checkout's editable install
     env_dir = tmp_path / "venv"
     venv.create(env_dir, system_site_packages=True, with_pip=True)

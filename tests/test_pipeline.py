@@ -2,16 +2,29 @@
 (pose graph + odometry + SE(2) snapping + place choice) and the failure rule, on a synthetic world."""
 import numpy as np
 import pytest
+from pipeline_world import SPEED, NothingMethod, TruthMethod, make_live_run, make_map
 
 from scenesig.localiser.detector import Detector, measurement_covariance, projection_jacobians, search_windows
-from scenesig.localiser.pipeline import (Localiser, Measurement, WeakLocaliser, default_config, make_method,
-                                odometry_covariance)
+from scenesig.localiser.pipeline import (
+    Localiser,
+    Measurement,
+    WeakLocaliser,
+    default_config,
+    make_method,
+    odometry_covariance,
+)
 from scenesig.localiser.replay import replay
 from scenesig.localiser.solver import LocalisationConstraint, pose_exp
 from scenesig.mapping.store import MapStore, MapWriter, PlaceData
-from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, interpolate_poses, invert, make_pose, rot_z, yaw_of
-
-from pipeline_world import SPEED, NothingMethod, TruthMethod, make_live_run, make_map
+from scenesig.surveys.geometry import (
+    CAMERA_FROM_VEHICLE_AXES,
+    Camera,
+    interpolate_poses,
+    invert,
+    make_pose,
+    rot_z,
+    yaw_of,
+)
 
 
 @pytest.fixture(scope="module")

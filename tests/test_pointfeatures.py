@@ -76,17 +76,17 @@ def test_match_empty_and_mismatched():
 def test_vote_fixed_vs_sliding():
     # A peak of 4 at ~20 straddles the 20-px bin edge; 3 votes sit together at ~51.
     dx = np.array([18, 19, 21, 22, 50, 51, 52, -300.0])
-    fixed = pf.vote_displacement(dx, 20, "fixed")
-    slide = pf.vote_displacement(dx, 20, "sliding")
+    fixed = pf.histogram_displacement(dx, 20, "fixed")
+    slide = pf.histogram_displacement(dx, 20, "sliding")
     assert fixed.support == 3 and fixed.displacement == pytest.approx(51.0)
     assert slide.support == 4 and slide.displacement == pytest.approx(20.0)
     assert list(slide.inliers) == [True] * 4 + [False] * 4
-    centre = pf.vote_displacement(dx, 20, "fixed", estimate="centre", origin=-10)
+    centre = pf.histogram_displacement(dx, 20, "fixed", estimate="centre", origin=-10)
     assert centre.bin == (10.0, 30.0) and centre.displacement == 20.0
-    gated = pf.vote_displacement(dx, 20, "sliding", dy=np.array([0, 0, 0, 0, 0, 0, 0, 99.0]),
+    gated = pf.histogram_displacement(dx, 20, "sliding", dy=np.array([0, 0, 0, 0, 0, 0, 0, 99.0]),
                                  max_dy=50)
     assert gated.n_votes == 7
-    none = pf.vote_displacement(np.array([]))
+    none = pf.histogram_displacement(np.array([]))
     assert np.isnan(none.displacement) and none.support == 0
 
 

@@ -1,17 +1,21 @@
 """Point-feature baseline: triangulated keyframe maps, the store's ``points/``, DAPC, and the ORB/SIFT method."""
 import numpy as np
 import pytest
+from point_world import CAMERA, T_VC, camera_pose, frame_prior, planes, render, vehicle_pose
 
 from scenesig.localiser.pipeline import MotionPrior, make_method
 from scenesig.localiser.pointmethod import PointLocaliser, match_to_map
 from scenesig.localiser.solver import pose_exp
-from scenesig.mapping.pointmap import (build_point_features, point_covariances, select_frames, triangulate_keyframe,
-                              triangulate_tracks)
+from scenesig.mapping.pointmap import (
+    build_point_features,
+    point_covariances,
+    select_frames,
+    triangulate_keyframe,
+    triangulate_tracks,
+)
 from scenesig.mapping.store import MapStore, MapWriter, PlaceData, decode_place, encode_place
 from scenesig.signatures.pointfeatures import PointFeatures
 from scenesig.surveys.geometry import invert, make_pose, rot_z
-
-from point_world import CAMERA, T_VC, camera_pose, frame_prior, planes, render, vehicle_pose
 
 BASELINES = (-5.0, -2.5, 2.5, 5.0)
 

@@ -1,13 +1,12 @@
 """ORB/SIFT weak localiser: the image-only stage (``prepare``) that the replay runs ahead on a worker."""
 import numpy as np
 import pytest
+from point_world import CAMERA, T_VC, camera_pose, render, vehicle_pose
+from test_pointmap import keyframe_map, point_store, world  # noqa: F401  (module fixtures)
 
 from scenesig.localiser.pipeline import MotionPrior, make_method
 from scenesig.localiser.pointmethod import LiveFrame
 from scenesig.localiser.solver import pose_exp
-
-from point_world import CAMERA, T_VC, camera_pose, render, vehicle_pose
-from test_pointmap import keyframe_map, point_store, world  # noqa: F401  (module fixtures)
 
 
 @pytest.mark.parametrize("kind", ["orb", "sift"])

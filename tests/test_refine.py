@@ -4,15 +4,29 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
+from scenesig.localiser.synthetic import synthetic_window
 from scenesig.mapping.geometry import (
-    anchor_rays, camera_depth, camera_poses, derotate_pixels, ideal_camera, ideal_pixels, ray_points,
-    reproject, reproject_jacobian, window_poses_from_increments, window_poses_from_odometry,
+    anchor_rays,
+    camera_depth,
+    camera_poses,
+    derotate_pixels,
+    ideal_camera,
+    ideal_pixels,
+    ray_points,
+    reproject,
+    reproject_jacobian,
+    window_poses_from_increments,
+    window_poses_from_odometry,
 )
 from scenesig.mapping.refine import (
-    Detections, default_config, huber, lm_huber, refine_landmarks, temporal_check,
+    WindowDetections,
+    default_config,
+    huber,
+    lm_huber,
+    refine_landmarks,
+    temporal_check,
 )
-from scenesig.localiser.synthetic import synthetic_window
-from scenesig.surveys.geometry import Camera, CAMERA_FROM_VEHICLE_AXES, invert, make_pose, rot_x, rot_y, rot_z
+from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, invert, make_pose, rot_x, rot_y, rot_z
 
 CAM = Camera(500.0, 500.0, 319.5, 239.5, 640, 480)
 T_VC = make_pose(CAMERA_FROM_VEHICLE_AXES, [1.5, 0.0, 1.5])
@@ -32,7 +46,7 @@ def detections_of(points, T_wp, sigma=0.5, seed=0):
     vis = (z > 0.5) & CAM.in_image(uv.reshape(-1, 2)).reshape(z.shape)
     uv = np.where(vis[..., None], uv + sigma * rng.standard_normal(uv.shape), np.nan)
     N, F = z.shape
-    return Detections(uv, np.ones((N, F)), np.ones((N, F)), np.ones(N))
+    return WindowDetections(uv, np.ones((N, F)), np.ones((N, F)), np.ones(N))
 
 
 def place_points(uv, depth):
@@ -161,7 +175,7 @@ def test_random_classifier_rejected_by_temporal_check():
     T_wp, ref = straight_window(21)
     N, F = 20, 21
     uv = np.stack([rng.uniform(0, 640, (N, F)), rng.uniform(0, 480, (N, F))], axis=2)
-    res = refine_landmarks(Detections(uv, 1.0, 0.9, 1.0), T_wp, CAM, T_VC, ref)
+    res = refine_landmarks(WindowDetections(uv, 1.0, 0.9, 1.0), T_wp, CAM, T_VC, ref)
     assert (res.reason == "temporal").all()
     assert (res.inlier_ratio < 0.5).all()
     assert np.isnan(res.points).all()
@@ -258,7 +272,7 @@ def test_refinement_is_deterministic_and_validates_input():
     with pytest.raises(ValueError, match="positive definite"):
         refine_landmarks(*args[:5], Q=-np.eye(2))
     with pytest.raises(ValueError, match="scale"):
-        Detections(np.zeros((3, 5, 2)), np.ones((3, 4)), 1.0, 1.0)
+        WindowDetections(np.zeros((3, 5, 2)), np.ones((3, 4)), 1.0, 1.0)
 
 
 def test_measurement_covariance_follows_eq5():
@@ -272,7 +286,7 @@ def test_measurement_covariance_follows_eq5():
     prob[2] = 0.5
     scale = np.ones((4, F))
     scale[3] = 0.25
-    res = refine_landmarks(Detections(uv, scale, prob, area), T_wp, CAM, T_VC, ref, np.eye(2),
+    res = refine_landmarks(WindowDetections(uv, scale, prob, area), T_wp, CAM, T_VC, ref, np.eye(2),
                            config={"area_ref": 1.0})
     assert res.kept.all()
     np.testing.assert_allclose(res.points, P, atol=1e-6)
@@ -281,8 +295,8 @@ def test_measurement_covariance_follows_eq5():
     np.testing.assert_allclose(c[2], 2 * c[0], rtol=1e-6)
     np.testing.assert_allclose(c[3], 4 * c[0], rtol=1e-6)
     # areas in pixels with the default area_ref (median area) give the same result as normalised ones
-    a = refine_landmarks(Detections(uv, scale, prob, area * 4096), T_wp, CAM, T_VC, ref, np.eye(2))
-    b = refine_landmarks(Detections(uv, scale, prob, area), T_wp, CAM, T_VC, ref, np.eye(2))
+    a = refine_landmarks(WindowDetections(uv, scale, prob, area * 4096), T_wp, CAM, T_VC, ref, np.eye(2))
+    b = refine_landmarks(WindowDetections(uv, scale, prob, area), T_wp, CAM, T_VC, ref, np.eye(2))
     np.testing.assert_allclose(a.covariances, b.covariances, rtol=1e-9)
 
 
@@ -294,7 +308,7 @@ def test_benchmark_reports_accuracy():
 
 
 def _lagging_detector(depth, seed=0, lag=0.4):
-    """Detections of landmarks at ``depth`` (N,) by a detector that searches one pyramid level either side
+    """WindowDetections of landmarks at ``depth`` (N,) by a detector that searches one pyramid level either side
     of the nominal scale 0.5 (4 levels per octave).  Where the landmark's apparent scale leaves that range
     the detector still fires -- at the edge scale, on a part of the grown patch that moves only ``lag`` as
     far from its reference position as the landmark does (what big patches do on the simulator)."""
@@ -321,8 +335,8 @@ def test_scale_gate_drops_firings_the_depth_rules_out():
     depth = np.random.default_rng(1).uniform(8.0, 30.0, 80)
     uv, scale, rng_, T_wp, ref, inside = _lagging_detector(depth)
     assert (~inside).sum() > 0.25 * inside.size  # near landmarks grow out of the searched levels
-    plain = refine_landmarks(Detections(uv, scale, 1.0, 1.0), T_wp, CAM, T_VC, ref)
-    gated = refine_landmarks(Detections(uv, scale, 1.0, 1.0, scale_range=rng_), T_wp, CAM, T_VC, ref)
+    plain = refine_landmarks(WindowDetections(uv, scale, 1.0, 1.0), T_wp, CAM, T_VC, ref)
+    gated = refine_landmarks(WindowDetections(uv, scale, 1.0, 1.0, scale_range=rng_), T_wp, CAM, T_VC, ref)
     assert not plain.censored.any()
 
     def err(res):
@@ -340,4 +354,4 @@ def test_scale_gate_drops_firings_the_depth_rules_out():
     agree = (gated.censored == (~inside & valid))[gated.kept]
     assert agree.mean() > 0.97
     with pytest.raises(ValueError, match="scale_range"):
-        Detections(uv, scale, 1.0, 1.0, scale_range=np.ones((3, 2)))
+        WindowDetections(uv, scale, 1.0, 1.0, scale_range=np.ones((3, 2)))

@@ -5,14 +5,13 @@ import json
 
 import numpy as np
 import pytest
+from pipeline_world import SPEED, frame_index, make_live_run, make_map
 
+from scenesig.localiser.pipeline import Measurement, WeakLocaliser
 from scenesig.localiser.replay import replay, write_outputs
 from scenesig.localiser.solver import LocalisationConstraint, pose_exp
-from scenesig.localiser.pipeline import Measurement, WeakLocaliser
 from scenesig.signatures import globaldesc
 from scenesig.surveys.geometry import interpolate_poses
-
-from pipeline_world import SPEED, frame_index, make_live_run, make_map
 
 
 class PlaceTruth(WeakLocaliser):

@@ -6,12 +6,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pipeline_world import TruthMethod, make_live_run, make_map
 
 from scenesig.cli import main as cli
 from scenesig.localiser.replay import FRAMES_COLUMNS, TIMING_KEYS, localise, replay, write_outputs
 from scenesig.surveys.errors import DataError
-
-from pipeline_world import TruthMethod, make_live_run, make_map
 
 
 @pytest.fixture(scope="module")

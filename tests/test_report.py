@@ -7,14 +7,13 @@ import subprocess
 
 import numpy as np
 import pytest
+from pipeline_world import NothingMethod, TruthMethod, make_live_run, make_map
 
+from scenesig.cli import main
 from scenesig.experiments import MatchingResult
 from scenesig.plots import write_matching
-from scenesig.cli import main
 from scenesig.report import build_report
 from scenesig.surveys.errors import DataError
-
-from pipeline_world import NothingMethod, TruthMethod, make_live_run, make_map
 
 _CHECK = """<script>
 window.addEventListener('load', function () {

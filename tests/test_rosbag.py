@@ -8,13 +8,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from build_world import tiny_runs
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from build_world import tiny_runs
 from scenesig.surveys.errors import DataError
-from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, invert, make_pose, pose_to_xyzquat, rot_z, xyzquat_to_pose
+from scenesig.surveys.geometry import (
+    CAMERA_FROM_VEHICLE_AXES,
+    invert,
+    make_pose,
+    pose_to_xyzquat,
+    rot_z,
+    xyzquat_to_pose,
+)
 from scenesig.surveys.importers import rosbag as rb
 from scenesig.surveys.run import read_run, write_run
 from scenesig.surveys.tum import write_tum

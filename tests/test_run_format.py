@@ -1,12 +1,11 @@
 """Survey-run format: round trip, and every kind of bad input named by file and line."""
 import numpy as np
 import pytest
+from conftest import make_run
 
 from scenesig.surveys.errors import DataError
 from scenesig.surveys.run import read_run, write_run
 from scenesig.surveys.tum import read_tum, write_tum
-
-from conftest import make_run
 
 
 @pytest.fixture

@@ -5,7 +5,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from build_world import tiny_map
 
 pytest.importorskip("scenesig.surveys.sim.simulate")

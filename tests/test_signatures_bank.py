@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from scenesig.signatures import hog
-from scenesig.signatures.bank import Bank, Classifier, score_maps_bruteforce, _score_all
+from scenesig.signatures.bank import Bank, Classifier, score_maps_bruteforce
+from scenesig.signatures.detection import _score_all
 
 
 def _bank(rng, specs):

@@ -8,16 +8,16 @@ from scenesig.signatures import heading
 def test_vote_finds_the_dense_mode_not_the_mean():
     rng = np.random.default_rng(0)
     votes = np.r_[rng.normal(50, 3, 30), rng.uniform(-300, 300, 25)]
-    est, inl = heading.vote_displacement(votes, window=20)
+    est, inl = heading.densest_window_displacement(votes, window=20)
     assert abs(est - 50) < 3
     assert inl[:30].mean() > 0.9 and inl[30:].mean() < 0.2
     # Weights decide between two modes.
     v = np.r_[np.full(5, -100.0), np.full(4, 80.0)]
     w = np.r_[np.full(5, 0.1), np.full(4, 1.0)]
-    assert heading.vote_displacement(v, w)[0] == 80.0
-    assert heading.vote_displacement(v)[0] == -100.0
+    assert heading.densest_window_displacement(v, w)[0] == 80.0
+    assert heading.densest_window_displacement(v)[0] == -100.0
     # No usable vote.
-    est, inl = heading.vote_displacement(np.array([np.nan, np.nan]))
+    est, inl = heading.densest_window_displacement(np.array([np.nan, np.nan]))
     assert np.isnan(est) and not inl.any()
 
 

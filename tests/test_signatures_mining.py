@@ -2,9 +2,10 @@
 import numpy as np
 import pytest
 
-from scenesig.signatures import mining
-from scenesig.signatures.shapes import ShapeSet
 from scenesig.localiser.synthetic import synthetic_place
+from scenesig.signatures import mining
+from scenesig.signatures.classifier import svm_dual
+from scenesig.signatures.shapes import ShapeSet
 
 
 def _shapes(boxes):
@@ -79,7 +80,7 @@ def test_fast_svm_matches_sklearn_svc():
     X = rng.normal(size=(40, 12))
     X[:5] += 0.8
     K = X @ X.T
-    coef, b = mining._svm_dual(K, 5, 0.1, 7.0)
+    coef, b = svm_dual(K, 5, 0.1, 7.0)
     y = np.r_[np.ones(5), -np.ones(35)]
     ref = SVC(kernel="precomputed", C=0.1, class_weight={1: 7.0, -1: 1.0}).fit(K, y)
     np.testing.assert_allclose(coef @ K + b, ref.decision_function(K), atol=1e-8)
@@ -106,7 +107,7 @@ def test_private_libsvm_binding_is_used_within_the_pinned_scikit_learn_range(mon
     monkeypatch.setattr(sklearn.svm, "SVC", None)        # the public fallback unavailable: the private path must work
     rng = np.random.default_rng(1)
     X = rng.normal(size=(20, 6))
-    coef, b = mining._svm_dual(X @ X.T, 4, 0.1, 4.0)
+    coef, b = svm_dual(X @ X.T, 4, 0.1, 4.0)
     assert np.isfinite(coef).all() and np.isfinite(b) and np.count_nonzero(coef) > 0
 
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from scenesig.surveys.geometry import Camera, invert, make_pose, rot_y, transform
+from scenesig.surveys.geometry import Camera, invert, rot_y, transform
 from scenesig.surveys.run import read_run
 from scenesig.surveys.sim.render import Renderer, build_pyramid, quad_texture_maps
 from scenesig.surveys.sim.scene import RunScene, render_view, static_depth

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from scenesig.surveys.geometry import invert
-from scenesig.surveys.sim.motion import (LANE_CENTRE, InsModel, drift_per_100m, ins, odometry, plan_drive)
+from scenesig.surveys.sim.motion import LANE_CENTRE, InsModel, drift_per_100m, ins, odometry, plan_drive
 from scenesig.surveys.sim.noise import rng_for
 from scenesig.surveys.sim.world import World
 

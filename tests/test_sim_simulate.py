@@ -6,10 +6,10 @@ from argparse import Namespace
 import numpy as np
 import pytest
 
+from scenesig.commands.simulate import run as run_from_args
 from scenesig.surveys.errors import DataError
 from scenesig.surveys.run import read_run
 from scenesig.surveys.sim import place_views
-from scenesig.commands.simulate import run as run_from_args
 from scenesig.surveys.sim.simulate import simulate
 from scenesig.surveys.sim.world import World
 

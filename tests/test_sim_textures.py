@@ -12,8 +12,11 @@ from scenesig.surveys.sim.noise import rng_for
 from scenesig.surveys.sim.world import PRESETS, World
 
 hypothesis = pytest.importorskip("hypothesis", reason="hypothesis is needed (pip install -e '.[test]')")
-from hypothesis import given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
+from hypothesis import (  # noqa: E402
+    given,
+    settings,
+    strategies as st,  # noqa: E402
+)
 
 SEASONS = ("summer", "autumn", "snow")
 # the resolutions the worlds use: tex_scale 0.5 (tiny) to 1.0 (demo, begbroke) times each generator's

@@ -10,7 +10,6 @@ from scenesig.localiser.synthetic import synthetic_place
 from scenesig.signatures import experience, hog, mining, whiten
 from scenesig.signatures.augment import CONDITIONS, augment, relight, synthesise
 
-
 # ---------------------------------------------------------------------------------- whitening
 
 

@@ -10,12 +10,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenesig.mapping.store import (
-    FORMAT_VERSION, MapStore, MapWriter, PlaceData, PlaceMeta, decode_keyframe, encode_keyframe,
-)
 from scenesig.cli import main
+from scenesig.mapping.store import (
+    FORMAT_VERSION,
+    MapStore,
+    MapWriter,
+    PlaceData,
+    PlaceMeta,
+    decode_keyframe,
+    encode_keyframe,
+)
 from scenesig.surveys.errors import DataError
-from scenesig.surveys.geometry import Camera, CAMERA_FROM_VEHICLE_AXES, make_pose, rot_z
+from scenesig.surveys.geometry import CAMERA_FROM_VEHICLE_AXES, Camera, make_pose, rot_z
 
 ROOT = Path(__file__).resolve().parents[1]
 CAM = Camera(500.0, 500.0, 319.5, 239.5, 640, 480)

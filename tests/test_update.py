@@ -200,6 +200,7 @@ def test_update_on_a_full_disk_keeps_the_old_map_and_reruns_to_the_same_bytes(wo
     """ENOSPC at once or part-way through a place file: exit 2 naming the file, the map a reader sees is the
     old generation, and the update re-run once space is freed ends with the uninterrupted update's bytes."""
     from faultinject import disk_full
+
     from scenesig.cli import main
 
     root, loc = world

@@ -155,11 +155,11 @@ def test_tiles_stitch_like_one_pass(xfeat_model):
 
 # ------------------------------------------------------------------------- the localiser on XFeat
 def _xfeat_store(tmp_path, model):
+    from point_world import CAMERA, T_VC, camera_pose, planes, render, vehicle_pose
+
     from scenesig.mapping.pointmap import triangulate_keyframe
     from scenesig.mapping.store import MapStore, MapWriter, PlaceData
     from scenesig.surveys.geometry import make_pose, rot_z
-
-    from point_world import CAMERA, T_VC, camera_pose, planes, render, vehicle_pose
 
     world = planes(seed=0)
     baselines = (-5.0, -2.5, 2.5, 5.0)
@@ -181,10 +181,10 @@ def _xfeat_store(tmp_path, model):
 
 
 def test_xfeat_method_localises_a_synthetic_frame(tmp_path, xfeat_model):
+    from point_world import CAMERA, T_VC, camera_pose, frame_prior, render
+
     from scenesig.localiser.pipeline import make_method
     from scenesig.surveys.geometry import invert
-
-    from point_world import CAMERA, T_VC, camera_pose, frame_prior, render
 
     store, T_wp0, world = _xfeat_store(tmp_path, xfeat_model)
     method = make_method("xfeat", store, CAMERA, T_VC, {"features": {"xfeat": {"model": str(xfeat_model)}}})
@@ -201,10 +201,10 @@ def test_xfeat_method_localises_a_synthetic_frame(tmp_path, xfeat_model):
 
 
 def test_xfeat_method_without_model_is_a_clear_error(tmp_path, monkeypatch):
+    from point_world import CAMERA, T_VC
+
     from scenesig.localiser.pipeline import make_method
     from scenesig.mapping.store import MapStore, MapWriter
-
-    from point_world import CAMERA, T_VC
 
     w = MapWriter(tmp_path / "m", CAMERA, T_VC, {})
     w.finalise([])

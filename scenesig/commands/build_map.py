@@ -60,8 +60,8 @@ def print_places(summary: dict, file=None) -> None:
 
 
 def run(args) -> int:
-    from scenesig.mapping.build import load_config, resolve_config
     from scenesig.api import build_map
+    from scenesig.mapping.build import load_config, resolve_config
     from scenesig.presets import apply_preset
 
     config = load_config(args.config) or {}

@@ -32,9 +32,9 @@ def register(groups):
 def run(args) -> int:
     import json
 
-    from scenesig.surveys.io import atomic_write_text
     from scenesig.mapping.check import check_paths
     from scenesig.surveys.check import DEFAULT_MAX_GAP_S, Problem
+    from scenesig.surveys.io import atomic_write_text
 
     max_gap = DEFAULT_MAX_GAP_S if args.max_gap is None else float(args.max_gap)
     result = check_paths(args.paths, max_gap_s=max_gap, images=not args.no_images, jobs=args.jobs,

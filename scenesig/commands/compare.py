@@ -29,9 +29,9 @@ def register(groups):
 
 
 def run(args) -> int:
+    from scenesig.api import compare
     from scenesig.localiser.replay import resolve_config
     from scenesig.mapping.build import load_config
-    from scenesig.api import compare
     from scenesig.presets import apply_preset
     from scenesig.surveys.io import atomic_write_text
 

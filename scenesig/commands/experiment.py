@@ -24,8 +24,8 @@ def register(groups):
 
 
 def run_matching(args) -> int:
-    from scenesig.mapping.store import MapStore
     from scenesig.experiments import matching_experiment
+    from scenesig.mapping.store import MapStore
     from scenesig.plots import write_matching
     from scenesig.surveys.run import read_run
 

@@ -340,7 +340,12 @@ def run_export_rosbag(args) -> int:
     import numpy as np
 
     from scenesig.surveys.errors import DataError
-    from scenesig.surveys.importers.rosbag import export_trajectory_bag, read_bag_poses, read_pose_covariances, write_run_bag
+    from scenesig.surveys.importers.rosbag import (
+        export_trajectory_bag,
+        read_bag_poses,
+        read_pose_covariances,
+        write_run_bag,
+    )
     from scenesig.surveys.run import read_run
     from scenesig.surveys.tum import read_tum
 

@@ -52,9 +52,9 @@ def register(groups):
 
 
 def run(args) -> int:
+    from scenesig.api import localise
     from scenesig.localiser.replay import method_options, resolve_config
     from scenesig.mapping.build import load_config
-    from scenesig.api import localise
     from scenesig.presets import apply_preset
 
     try:

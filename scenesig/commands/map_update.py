@@ -23,13 +23,12 @@ def register(groups):
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from scenesig.localiser.outputs import read_localisation
     from scenesig.mapping.build import load_config
     from scenesig.mapping.update import update_map
     from scenesig.presets import apply_preset
-
-    from pathlib import Path
-
     from scenesig.surveys.errors import DataError
 
     locs = [read_localisation(folder, args.runs_dir) for folder in args.localisations]
