@@ -103,9 +103,9 @@ SEARCH = {
     "signatures": [{"min_prob": 0.2}, {"min_prob": 0.3}, {"min_prob": 0.5}],
     "xfeat": [{}],      # its authors' matcher and settings (Potje et al. 2024): nothing to choose
     # point-set-domain: the settings the seed leaves open (docs/aerial.md: the defaults were chosen on seed 0)
-    "psd-point": [{}, {"min_cossim": 0.75}],
-    "psd-kdm": [{}, {"kdm": {"rho": 3.0}}, {"kdm": {"scales_px": (80.0, 160.0, 320.0)}}],
-    "psd-kdmm": [{}, {"kdmm": {"delta": 1}}, {"kdmm": {"keep_fraction": 0.75}}],
+    "psd-point": [{"min_cossim": 0.82}, {"min_cossim": 0.75}],
+    "psd-kdm": [{"kdm": {}}, {"kdm": {"rho": 3.0}}, {"kdm": {"scales_px": (80.0, 160.0, 320.0)}}],
+    "psd-kdmm": [{"kdmm": {}}, {"kdmm": {"delta": 1}}, {"kdmm": {"keep_fraction": 0.75}}],
     "xfeat-dapc": [{}], "xfeat-gms": [{}], "sift-dapc": [{}], "sift-gms": [{}],   # the seeds' filters as published
 }
 
