@@ -25,7 +25,7 @@ def test_unknown_keys_are_named_with_the_known_ones():
         merge_settings(DEFAULTS, [("a", 1)], "demo")
 
 
-@pytest.mark.parametrize("component", ["signatures.hog:build_pyramid", "mapping.places:define_places"])
+@pytest.mark.parametrize("component", ["scenesig.signatures.hog:build_pyramid", "scenesig.mapping.places:define_places"])
 def test_components_reject_unknown_options(component):
     """The two that used to drop (HOG) or accept (places) misspelt options."""
     import importlib

@@ -446,6 +446,20 @@ def choose(streams: list[dict], alpha: float, beta: float) -> dict:
       bounds come from the design rates ``alpha`` and ``beta``; the realised per-probation rates are
       measured (:func:`probation_outcomes`) and reported beside them.
     """
+    # the grid replays every recorded stream through the monitor thousands of times: its per-alert warnings
+    # (meant for a user watching one run) would drown the output
+    import logging
+
+    logger = logging.getLogger("scenesig.localiser.integrity")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        return _choose(streams, alpha, beta)
+    finally:
+        logger.setLevel(level)
+
+
+def _choose(streams: list[dict], alpha: float, beta: float) -> dict:
     from scenesig.localiser.integrity import default_config
 
     right = [s for s in streams if s["kind"] == "right"]
