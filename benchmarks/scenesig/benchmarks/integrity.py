@@ -150,6 +150,18 @@ def _median(values) -> float | None:
     return float(np.median(v)) if v.size else None
 
 
+def _defaults_key() -> str:
+    """``-`` and a digest of the monitor's defaults and the bound inflation: an evaluation cached under other
+    defaults is not reused once they change (calibration runs with the tests off do not depend on them)."""
+    import hashlib
+
+    from scenesig.localiser.integrity import default_config
+    from scenesig.localiser.uncertainty import INFLATION
+
+    text = json.dumps({"integrity": default_config, "inflation": INFLATION}, sort_keys=True, default=str)
+    return "-" + hashlib.sha256(text.encode()).hexdigest()[:10]
+
+
 def localise_one(layout: Layout, seed: int, run: Path, kind: str, condition: str, mode: str, every: int) -> dict:
     """One localisation (cached in the world's ``loc-<mode>`` folder); the run's row of the JSON."""
     from dataclasses import asdict
@@ -157,7 +169,7 @@ def localise_one(layout: Layout, seed: int, run: Path, kind: str, condition: str
     from scenesig.api import localise
     from scenesig.surveys.io import atomic_write_text
 
-    out = layout.world(seed) / f"loc-{mode}" / run.name
+    out = layout.world(seed) / f"loc-{mode}{_defaults_key() if mode == 'evaluate' else ''}" / run.name
     row_path = out / "row.json"
     if row_path.exists():
         return json.loads(row_path.read_text())

@@ -75,8 +75,8 @@ default_config = {
     "sprt_other_factor": 3.0,      # H0's rate: this x other (a tracked false fix draws its windows onto
                                    # chance firings, which a fixed prior at build time does not)
     "sprt_own_fraction": 0.8,      # H1's rate: H0's + this x (own - H0's) (unseen conditions fire less)
-    "sprt_dispersion": 1.0,        # the log-likelihood ratio is divided by this (signatures fire together)
-    "cusum_h": 32.0,               # tracking alert when Page's CUSUM of -LLR reaches this (ARL >= e^h places)
+    "sprt_dispersion": 2.0,        # the log-likelihood ratio is divided by this (signatures fire together)
+    "cusum_h": 8.0,                # tracking alert when Page's CUSUM of -LLR reaches this (ARL >= e^h places)
     # with the sequential test, the backstop tests and the probation's minimum chosen with it (on the
     # calibration worlds, docs/integrity.md "Calibrated on many worlds"); the keys below without "sprt_"
     # apply to maps without firing rates

@@ -45,10 +45,10 @@ __all__ = ["Z_95", "INFLATION", "BOUND_COLUMNS", "COVARIANCE_COLUMNS", "planar_c
 #: two-sided 95 % quantile of a normal distribution
 Z_95 = 1.959963984540054
 #: the inflation of the marginal's standard deviations (see the module docstring, "Calibration"): the raw
-#: marginal is overconfident.  9.3 is the smallest factor (0.05 steps) with which at least 95 % of the 39
-#: right-map runs of 8 calibration worlds (``scenesig bench integrity --seeds 1000-1007 --calibrate
-#: --choose``; never reported) have bound_coverage_95 >= 0.9 (median need 3.8; before, 5.2 from four demo runs)
-INFLATION = 9.3
+#: marginal is overconfident.  8.25 is the smallest factor (0.05 steps) with which at least 95 % of the 59
+#: right-map runs of 12 calibration worlds (``scenesig bench integrity --seeds 1000-1011 --calibrate
+#: --choose``; never reported) have bound_coverage_95 >= 0.9 (median need 3.6; before, 5.2 from four demo runs)
+INFLATION = 8.25
 #: the per-frame bounds ``frames.csv`` carries
 BOUND_COLUMNS = ("lateral_bound_95_m", "longitudinal_bound_95_m", "heading_bound_95_deg")
 #: ``covariances.csv``'s columns: time, then the upper triangle of the planar (x, y, yaw) covariance
