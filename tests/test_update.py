@@ -47,8 +47,7 @@ def _contents(root: Path) -> dict:
 @pytest.fixture(scope="module")
 def reference_update(world, tmp_path_factory):
     """An uninterrupted update of the tiny map with the night localisation, into a new folder."""
-    from scenesig.mapping.update import read_localisation
-    from scenesig.mapping.update import update_map
+    from scenesig.mapping.update import read_localisation, update_map
 
     root, loc = world
     out = tmp_path_factory.mktemp("updated") / "map"

@@ -133,7 +133,7 @@ def read_localisation(folder, search=()) -> Localisation:
     return loc
 
 
-def find_run(name: str, hints: list[Path], search: list[Path]) -> Path:
+def find_run(name: str, hints: list[Path | None], search: list[Path]) -> Path:
     """The folder of the run called ``name``: a hint if it is that run, else a sub-folder of ``search``."""
     for h in hints:
         if h is not None and (h / "run.toml").is_file() and read_run(h, check_images=False).name == name:
