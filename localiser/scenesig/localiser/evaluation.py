@@ -20,7 +20,9 @@
 * :func:`dead_reckoning_curve` -- for Fig. 25: P(travelling more than d blind), distance-weighted
   (so its value at 20 m is ``blind_fraction_over_20m``) or per blind stretch.
 
-The functions take arrays; reading runs and writing ``metrics.json`` is the replay module's job.
+What the errors are measured against comes from the map: :func:`reference_path` (its places in order)
+and :func:`map_relative_truth` (the truth carried into the map's frame).  The other functions take arrays;
+the metrics of a localised run are :mod:`scenesig.localiser.outputs`'s.
 """
 from __future__ import annotations
 
