@@ -235,10 +235,12 @@ class Localisation:
         if self.valid is None:
             self.valid = np.isfinite(self.poses[:, :3, 3]).all(axis=1)
         self.valid = np.asarray(self.valid, bool)
-        if self.resets is None:
-            self.resets = np.zeros(n, dtype=bool)
+        self.resets = np.zeros(n, dtype=bool) if self.resets is None else np.asarray(self.resets, bool)
         full = empty_frames(self.times)
         full.update({c: _column(c, v) for c, v in self.frames.items()})
+        bad = {c: len(v) for c, v in full.items() if len(v) != n}
+        if bad or self.valid.shape != (n,) or self.resets.shape != (n,):
+            raise ValueError(f"{n} frame times but per-frame arrays of other lengths: {bad or 'valid/resets'}")
         self.frames = full
 
     def __repr__(self) -> str:
