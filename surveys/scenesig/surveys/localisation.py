@@ -351,11 +351,11 @@ class Localisation:
             if len(ct) != len(times) or (len(ct) and np.max(np.abs(ct - times)) > 1e-3):
                 raise DataError(cpath, f"{len(ct)} rows not at trajectory.tum's {len(times)} poses")
             planar[k] = cp
-        resets = np.zeros(n, dtype=bool)
-        for tr in metrics.get("reset_times") or []:     # as the replay marks them
-            resets[min(int(np.searchsorted(ft, tr, side="right")), n - 1)] = True
         # a pose at every frame: the trajectory's times (more digits than frames.csv's)
         all_times = times if len(times) == n else ft
+        resets = np.zeros(n, dtype=bool)
+        for tr in metrics.get("reset_times") or []:     # as the replay marks them
+            resets[min(int(np.searchsorted(all_times, tr, side="right")), n - 1)] = True
         return cls(method=metrics["method"], mode=metrics.get("mode", "deterministic"), every=metrics.get("every"),
                    times=all_times, poses=full, valid=valid, frames=frames, resets=resets, planar_covariances=planar,
                    metrics=metrics, folder=folder, failures=int(metrics.get("failures", 0)),
