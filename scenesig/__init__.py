@@ -3,7 +3,7 @@ and the front door of the library:
 
 * :func:`scenesig.build_map` -- survey runs -> a map (the build summary);
 * :func:`scenesig.localise` -- a map and a run -> a :class:`scenesig.api.Localisation` in memory (times,
-  poses, the per-frame table, ``metrics()``, ``write(dir)``);
+  poses, the per-frame table, ``metrics``, ``write(dir)``);
 * :func:`scenesig.compare` -- a map, runs and methods -> one row of metrics per run and method;
 * :class:`scenesig.Session` -- the online localiser, frame by frame (odometry, GNSS, images as arrays);
 * :class:`scenesig.Map` -- ``Map.open(path)``: a map's layers, places, identity, settings and build summary.

@@ -9,7 +9,7 @@
     loc = scenesig.localise("maps/demo", "world/run05_fog")           # nothing written
     loc.times, loc.poses            # (N,), (N, 4, 4): NaN before a first fix (without INS/GPS)
     loc.frames["lateral_error"]     # the per-frame table (frames.csv's columns)
-    loc.metrics()["lateral_error_m"]["median"]      # error keys only where the run has truth
+    loc.metrics["lateral_error_m"]["median"]        # error keys only where the run has truth
     loc.write("out/fog")            # exactly the files ``scenesig localise`` writes
     rows = scenesig.compare("maps/demo", ["world/run05_fog"], methods=["signatures", "orb"])
 
@@ -21,13 +21,10 @@ unset one leaves ``config`` (then the preset, then the defaults) in force.  See 
 """
 from __future__ import annotations
 
-import csv
-import io
 from pathlib import Path
 
-import numpy as np
-
 from scenesig.presets import apply_preset
+from scenesig.surveys.localisation import Localisation
 
 __all__ = ["build_map", "localise", "compare", "Localisation"]
 
@@ -84,82 +81,6 @@ def build_map(runs, reference, out, *, layers=None, jobs: int = 1, scheduler=Non
     return summary
 
 
-class Localisation:
-    """One run localised against a map, in memory (what :func:`localise` returns).
-
-    Attributes
-    ----------
-    result : the replay's :class:`scenesig.localiser.replay.ReplayResult` (every per-frame record).
-    store : the map (:class:`scenesig.mapping.store.MapStore`).
-    """
-
-    def __init__(self, result, store, max_path_distance_m: float | None = None):
-        self.result = result
-        self.store = store
-        self.max_path_distance_m = max_path_distance_m
-        self._evaluated = None
-
-    def __repr__(self) -> str:
-        r = self.result
-        return (f"Localisation(run={r.run.name!r}, method={r.method!r}, frames={len(r.times)}, "
-                f"localised={int(np.sum(r.localised))}, failures={r.failures})")
-
-    @property
-    def method(self) -> str:
-        return self.result.method
-
-    @property
-    def run(self) -> str:
-        return self.result.run.name
-
-    @property
-    def times(self) -> np.ndarray:
-        """(N,) frame times."""
-        return np.asarray(self.result.times, float)
-
-    @property
-    def poses(self) -> np.ndarray:
-        """(N, 4, 4) estimates ``T_world_vehicle`` at the frame times; NaN where the localiser had no world
-        pose (before its first fix when localising without INS/GPS)."""
-        P = np.array(self.result.poses, float)
-        P[~np.asarray(self.result.valid, bool)] = np.nan
-        return P
-
-    def _evaluation(self):
-        if self._evaluated is None:
-            from scenesig.localiser.outputs import compute_metrics
-
-            self._evaluated = compute_metrics(self.result, self.store, self.max_path_distance_m)
-        return self._evaluated
-
-    def metrics(self) -> dict:
-        """``metrics.json``'s content: what the localiser knows, and the errors against truth where the run
-        has truth (``lateral_error_m``, ``heading_error_deg``, ...; absent otherwise)."""
-        import copy
-
-        return copy.deepcopy(self._evaluation()[0])
-
-    @property
-    def frames(self) -> dict:
-        """The per-frame table: ``{column: (N,) float array}`` with ``frames.csv``'s columns
-        (:data:`scenesig.localiser.outputs.FRAMES_COLUMNS`) and values -- errors NaN without truth."""
-        from scenesig.localiser.outputs import frames_csv_text
-        from scenesig.localiser.uncertainty import bounds_from_result
-
-        text = frames_csv_text(self.result, self._evaluation()[1], bounds_from_result(self.result, self.store))
-        rows = list(csv.reader(io.StringIO(text)))
-        header, body = rows[0], [r for r in rows[1:] if r]
-        return {h: np.array([float(r[k]) for r in body], float) for k, h in enumerate(header)}
-
-    def write(self, out, figure: bool = True) -> dict:
-        """Write exactly the files ``scenesig localise`` writes (``trajectory.tum``, ``covariances.csv``,
-        ``frames.csv``, ``metrics.json``, and ``trajectory.png`` with ``figure``) into ``out``; returns the
-        metrics."""
-        from scenesig.localiser.outputs import write_outputs
-
-        return write_outputs(self.result, self.store, out, self.max_path_distance_m, figure=figure)
-
-
 def localise(map, run, *, method: str = "signatures", oracle: str | None = None, every: int | None = None,
              config: dict | None = None, preset: str | None = None, realtime: bool = False, speed: float = 1.0,
              progress: bool = False, camera_check: bool = True) -> Localisation:
@@ -180,6 +101,7 @@ def localise(map, run, *, method: str = "signatures", oracle: str | None = None,
         (the comparison with the map's camera is always made; a clearly incompatible run raises
         :class:`scenesig.surveys.errors.DataError`).
     """
+    from scenesig.localiser.outputs import evaluate_localisation
     from scenesig.localiser.replay import DEFAULT_EVERY, ORACLES, default_config, localise_run
     from scenesig.surveys.settings import merge_settings
 
@@ -188,21 +110,22 @@ def localise(map, run, *, method: str = "signatures", oracle: str | None = None,
     oracle = mpd["oracle"] if oracle is None else oracle        # keyword > config > preset > default
     if oracle not in ORACLES:
         raise ValueError(f"oracle must be one of {', '.join(ORACLES)}, got {oracle!r}")
-    result, store = localise_run(map, run, method, every=DEFAULT_EVERY if every is None else int(every),
-                                 realtime=realtime, speed=speed, config=cfg, progress=progress, oracle=oracle,
-                                 camera_check=camera_check)
-    return Localisation(result, store, mpd["max_path_distance_m"])
+    loc, store = localise_run(map, run, method, every=DEFAULT_EVERY if every is None else int(every),
+                              realtime=realtime, speed=speed, config=cfg, progress=progress, oracle=oracle,
+                              camera_check=camera_check)
+    evaluate_localisation(loc, store, mpd["max_path_distance_m"])
+    return loc
 
 
 def _metrics_of(map_root, run, method, oracle, every, config, preset) -> dict:
     return localise(map_root, run, method=method, oracle=oracle, every=every, config=config,
-                    preset=preset).metrics()
+                    preset=preset).metrics
 
 
 def compare(map, runs, *, methods, oracle: str | None = None, jobs: int = 1, scheduler=None, every: int | None = None,
             config: dict | None = None, preset: str | None = None) -> list[dict]:
     """Localise every run with every method; one row per run and method (in that order): a dict of the
-    metrics (:meth:`Localisation.metrics`) whose first keys are ``run`` and ``method``.
+    metrics (:attr:`Localisation.metrics`) whose first keys are ``run`` and ``method``.
 
     ``oracle`` and the other settings as in :func:`localise`.  ``jobs`` localisations run in parallel
     (joblib processes), or on a Dask cluster with ``scheduler`` (an address or a ``distributed.Client``;

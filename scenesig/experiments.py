@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from scenesig.localiser.evaluation import dead_reckoning_curve, lateral_heading_errors, travelled
-from scenesig.localiser.outputs import read_output_files, reference_path
+from scenesig.localiser.outputs import reference_path
 from scenesig.localiser.pointmethod import match_to_map, resolve_config as resolve_point_config
 from scenesig.mapping.pointmap import point_features
 from scenesig.mapping.store import MapStore
@@ -321,9 +321,10 @@ class LocaliseOutput:
 
 def read_localise_output(folder) -> LocaliseOutput:
     """Read ``metrics.json``, ``frames.csv`` and ``trajectory.tum`` of a localise output folder."""
-    folder = Path(folder)
-    metrics, frames, times, poses = read_output_files(folder)
-    return LocaliseOutput(folder, metrics, frames, times, poses)
+    from scenesig.surveys.localisation import Localisation
+
+    loc = Localisation.from_folder(folder)
+    return LocaliseOutput(Path(folder), loc.metrics or {}, loc.frames, loc.times, loc.poses)
 
 
 def find_localise_outputs(paths) -> list[Path]:

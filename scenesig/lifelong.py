@@ -114,8 +114,7 @@ def _day_map(out: Path, train_names: list[str], dcfg: dict, cfg: dict, jobs: int
 
 def run_lifelong(out="out/demo", jobs: int = 2, config: dict | None = None, demo_config: dict | None = None) -> dict:
     """The lifelong stage on a finished demo in ``out``; returns ``lifelong.json``'s content."""
-    from scenesig.localiser.outputs import read_localisation
-    from scenesig.mapping.update import update_map
+    from scenesig.mapping.update import read_localisation, update_map
     from scenesig.surveys.io import atomic_write_text
     from scenesig.surveys.run import read_run
     from scenesig.surveys.sim.simulate import run_names, simulate_run

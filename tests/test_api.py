@@ -69,6 +69,7 @@ def test_api_localise_is_the_cli_localise(tiny_world, tmp_path):
     from scenesig import api
     from scenesig.cli import main
     from scenesig.localiser.outputs import read_frames_csv
+    from scenesig.surveys.localisation import Localisation
     from scenesig.surveys.tum import read_tum
 
     runs, root = tiny_world
@@ -90,9 +91,17 @@ def test_api_localise_is_the_cli_localise(tiny_world, tmp_path):
     assert np.allclose(loc.times, t, atol=1e-6) and np.allclose(loc.poses, P.reshape(-1, 4, 4), atol=1e-6)
     frames = read_frames_csv(tmp_path / "cli" / "frames.csv")
     assert list(loc.frames) == list(frames)
-    for k in frames:
-        assert np.array_equal(loc.frames[k], frames[k], equal_nan=True), k
-    m = loc.metrics()
+    for k in frames:      # the same types; the file's floats are rounded to 6 decimals, memory holds them whole
+        assert loc.frames[k].dtype == frames[k].dtype, k
+        if frames[k].dtype.kind == "f":
+            assert np.allclose(loc.frames[k], frames[k], rtol=0, atol=5.1e-7, equal_nan=True), k
+        else:
+            assert np.array_equal(loc.frames[k], frames[k]), k
+    back = Localisation.from_folder(tmp_path / "api")       # what write() wrote, read back
+    assert json.dumps(back.metrics) == json.dumps(loc.metrics) and np.array_equal(back.valid, loc.valid)
+    assert np.allclose(back.poses, loc.poses, atol=1e-9, equal_nan=True)
+    assert np.allclose(back.planar_covariances, loc.planar_covariances, rtol=1e-12, equal_nan=True)
+    m = loc.metrics
     assert m["lateral_error_m"]["median"] is not None and m["truth_source"] == "truth"
     assert m["settings"]["posegraph"]["window_seconds"] > 0 and m["settings"]["replay"]["every"] == 4
     assert m["settings"]["method"]["prior_gating"] is True
@@ -112,7 +121,7 @@ def test_localise_without_truth_has_no_error_keys(tiny_world):
     with pytest.raises(Exception, match="groundtruth.tum"):      # the oracle is needed with oracle="ins"
         api.localise(root, run)
     loc = api.localise(root, dataclasses.replace(night, truth_times=None, truth_poses=None), every=8)
-    m = loc.metrics()
+    m = loc.metrics
     assert m["truth_source"] == "groundtruth"         # the INS/GPS stands in for the truth
     assert m["every"] == 8 and m["settings"]["replay"]["every"] == 8
 
@@ -129,7 +138,7 @@ def test_config_oracle_is_used_and_the_keyword_wins(tiny_world):
     blind = dataclasses.replace(night, groundtruth_times=None, groundtruth_poses=None, gps=None)   # no INS/GPS
     with pytest.raises(Exception, match="groundtruth.tum"):         # the default oracle needs the INS/GPS
         api.localise(root, blind)
-    m = api.localise(root, blind, config={"oracle": "none"}, every=8).metrics()     # config's oracle used
+    m = api.localise(root, blind, config={"oracle": "none"}, every=8).metrics     # config's oracle used
     assert m["oracle"] == "none" and m["settings"]["replay"]["oracle"] == "none"
     with pytest.raises(Exception, match="groundtruth.tum"):         # the explicit keyword over config
         api.localise(root, blind, oracle="ins", config={"oracle": "none"})
@@ -150,7 +159,7 @@ def test_compare_one_row_per_run_and_method(tiny_world):
     assert [(r["run"], r["method"]) for r in rows] == [(night.name, "signatures"), (night.name, "orb"),
                                                        (runs[1].name, "signatures"), (runs[1].name, "orb")]
     assert all(list(r)[:2] == ["run", "method"] for r in rows)
-    alone = api.localise(root, night.root, method="orb").metrics()
+    alone = api.localise(root, night.root, method="orb").metrics
     assert rows[1]["lateral_error_m"] == alone["lateral_error_m"] and rows[1]["failures"] == alone["failures"]
 
 
@@ -186,7 +195,7 @@ def test_presets_reach_the_library(tiny_world):
         apply_preset("build", None, "papr")
     runs, root = tiny_world
     loc = api.localise(root, _night(runs).root, preset="paper", every=8)
-    assert loc.metrics()["settings"]["method"]["prior_gating"] is False
+    assert loc.metrics["settings"]["method"]["prior_gating"] is False
 
 
 #: The README's library example is the first ```python block after this marker (an HTML comment, invisible
@@ -228,7 +237,7 @@ def test_readme_example_runs(tiny_world, tmp_path, monkeypatch):
     exec(compile(code, "README.md", "exec"), scope)
     assert isinstance(scope["loc"], api.Localisation) and scope["summary"]["places"] >= 2
     assert (tmp_path / "out" / "night" / "frames.csv").is_file()
-    assert math.isfinite(scope["loc"].metrics()["lateral_error_m"]["median"])
+    assert math.isfinite(scope["loc"].metrics["lateral_error_m"]["median"])
     assert scope["row"]["method"] == "orb"      # compare's last row: the method whose layer the example asks for
     assert scenesig.build_map is build_faster    # the example went through the front door
 

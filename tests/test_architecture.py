@@ -178,23 +178,13 @@ def test_cycle_finder_finds_a_cycle():
     assert _cycles(G, "p") == [["p.a", "p.b"]]
 
 
-# Cycles inside a layer not yet removed (issue 37): the localiser's result modules (outputs imports the
-# replay's ReplayResult, replay re-exports outputs' names; plots and uncertainty read outputs' truth helpers),
-# left until the replay becomes a driver over a Session and the result types are unified.  Only shrinks.
-KNOWN_CYCLES = {
-    "localiser": [["scenesig.localiser.outputs", "scenesig.localiser.plots", "scenesig.localiser.replay",
-                   "scenesig.localiser.uncertainty"]],
-}
-
-
 def test_no_import_cycle_inside_a_layer():
     """No module of a layer imports itself through others of the same layer (a package's ``__init__``
     included): a cycle means the modules cannot be read, tested or moved one at a time."""
     graph = _graph()
     found = {layer: _cycles(graph, f"scenesig.{layer}") for layer in _layer_roots()}
     found = {layer: c for layer, c in found.items() if c}
-    expected = {layer: c for layer, c in KNOWN_CYCLES.items() if c}
-    assert found == expected, f"import cycles inside a layer: {found}"
+    assert not found, f"import cycles inside a layer: {found}"
 
 
 def test_architecture_doc_names_every_module_and_benchmark():

@@ -151,8 +151,8 @@ def test_a_map_mined_on_hog_and_xfeat_cells_builds_and_localises(xfeat_env, tiny
     bank = Bank.from_arrays(MapStore.open(tmp_path / "map").load_place(0).bank_arrays)
     assert bank.hog["features"] == "hog+xfeat" and bank[0].weights.shape[2] == 95
     loc = api.localise(tmp_path / "map", runs[2].root, every=4)         # the night run
-    assert loc.metrics()["localised_fraction"] > 0, loc.metrics()
-    assert loc.result.method_config["features"] == "hog+xfeat"
+    assert loc.metrics["localised_fraction"] > 0, loc.metrics
+    assert loc.method_config["features"] == "hog+xfeat"
     # without the model the replay stops before it starts, naming where it looked
     monkeypatch.delenv("SCENESIG_XFEAT_MODEL")
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "nowhere"))

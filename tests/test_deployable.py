@@ -308,10 +308,9 @@ def test_map_update_of_an_older_generation_needs_asking(tiny, tmp_path, capsys):
 def test_legacy_map_without_identity_is_read_and_updated(tiny, tmp_path):
     """A map written before identities: readable, its identity derived (the same for every reader); its
     localisations record that identity, and the update writes it into the manifest."""
-    from scenesig.localiser.outputs import read_localisation
     from scenesig.mapping.identity import derived_map_id
     from scenesig.mapping.store import MapStore
-    from scenesig.mapping.update import check_localisations
+    from scenesig.mapping.update import check_localisations, read_localisation
 
     root, loc, _ = tiny
     old = tmp_path / "old"

@@ -255,8 +255,8 @@ def test_right_map_is_confirmed_after_probation_without_alert(road, tmp_path):
 def test_wrong_map_accepts_no_fix_and_says_so_once(road, tmp_path, caplog):
     import logging
 
-    from scenesig.localiser.outputs import read_output_files
     from scenesig.localiser.replay import write_outputs
+    from scenesig.surveys.localisation import Localisation
 
     _, run, store, _ = road
     with caplog.at_level(logging.WARNING, logger="scenesig.localiser.integrity"):
@@ -266,6 +266,6 @@ def test_wrong_map_accepts_no_fix_and_says_so_once(road, tmp_path, caplog):
     m = write_outputs(res, store, tmp_path / "out", figure=False)
     assert m["localisations"] == 0 and m["integrity_alerts"] >= 1 and m["integrity_alert_frames"] >= 1
     assert m.get("first_fix_time") is None           # no fix was ever confirmed
-    frames = read_output_files(tmp_path / "out")[1]
+    frames = Localisation.from_folder(tmp_path / "out").frames
     assert frames["integrity_alert"].sum() == m["integrity_alert_frames"]
     assert not np.asarray(res.valid).any()           # the discarded fixes left no pose behind

@@ -47,8 +47,7 @@ def _contents(root: Path) -> dict:
 @pytest.fixture(scope="module")
 def reference_update(world, tmp_path_factory):
     """An uninterrupted update of the tiny map with the night localisation, into a new folder."""
-    from scenesig.localiser.outputs import read_localisation
-    from scenesig.mapping.update import update_map
+    from scenesig.mapping.update import read_localisation, update_map
 
     root, loc = world
     out = tmp_path_factory.mktemp("updated") / "map"
@@ -105,7 +104,7 @@ def test_update_changes_only_the_weak_places(world, reference_update):
 def _update_process(root: Path, loc: Path, pause_s: float = 0.0) -> subprocess.Popen:
     """``update_map`` in its own process; ``pause_s`` after each journalled place, so a kill lands between
     places however fast the machine is (a tiny map's update can otherwise finish between two polls)."""
-    code = ("import sys, time; from scenesig.localiser.outputs import read_localisation; "
+    code = ("import sys, time; from scenesig.mapping.update import read_localisation; "
             "import scenesig.mapping.update as U; real = U._append; "
             f"U._append = lambda p, o: (real(p, o), time.sleep({float(pause_s)})); "
             "U.update_map(sys.argv[1], [read_localisation(sys.argv[2])], progress=False)")

@@ -25,9 +25,8 @@ def register(groups):
 def run(args) -> int:
     from pathlib import Path
 
-    from scenesig.localiser.outputs import read_localisation
     from scenesig.mapping.build import load_config
-    from scenesig.mapping.update import update_map
+    from scenesig.mapping.update import read_localisation, update_map
     from scenesig.presets import apply_preset
     from scenesig.surveys.errors import DataError
 

@@ -52,7 +52,7 @@ from scenesig.aerial.trials import sensed_centre
 from scenesig.signatures.colour import exact_histogram_match, local_exact_histogram_match, match_histograms
 from scenesig.surveys.settings import merge_settings
 
-__all__ = ["default_config", "MRSMCC", "Localisation", "translation_affine"]
+__all__ = ["default_config", "MRSMCC", "TileFix", "translation_affine"]
 
 #: MRSM-CC settings.
 default_config = {
@@ -89,8 +89,8 @@ def translation_affine(centre_ref, centre_sensed, linear=None) -> np.ndarray:
 
 
 @dataclass
-class Localisation:
-    """Where a sensed image lies on the reference.
+class TileFix:
+    """Where a sensed (UAV) image lies on the reference tile.
 
     Attributes
     ----------
@@ -336,7 +336,7 @@ class MRSMCC:
         return "sism", float("nan"), sc, empty, empty, n_regions, translation_affine(centre, c)
 
     # ------------------------------------------------------------------ main
-    def locate(self, sensed: np.ndarray, prior=None) -> Localisation:
+    def locate(self, sensed: np.ndarray, prior=None) -> TileFix:
         """Locate a sensed BGR image on the reference.
 
         Parameters
@@ -348,7 +348,7 @@ class MRSMCC:
 
         Returns
         -------
-        Localisation
+        TileFix
         """
         t0 = time.perf_counter()
         cfg = self.config
@@ -408,9 +408,9 @@ class MRSMCC:
             *result, T = self._whole_image(self.reference_.to_gray(sensed), None, T_att, att_ncc, rough, 0)
         method, emin, score, s_, d_, nreg = result
         if not np.all(np.isfinite(T)):
-            return Localisation(np.full(2, np.nan), T, np.nan, np.nan, it, nreg, method, emin, score,
+            return TileFix(np.full(2, np.nan), T, np.nan, np.nan, it, nreg, method, emin, score,
                                 s_, d_, -np.inf, time.perf_counter() - t0)
         scale, rot = affmod.scale_rotation(T)
         _, ncc = self.refine_whole(self.reference_.to_gray(sensed), T, 0)
-        return Localisation(affmod.apply_affine(T, c), T, scale, rot, it, nreg, method, emin,
+        return TileFix(affmod.apply_affine(T, c), T, scale, rot, it, nreg, method, emin,
                             score, s_, d_, ncc, time.perf_counter() - t0)

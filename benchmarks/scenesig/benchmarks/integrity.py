@@ -199,10 +199,10 @@ def localise_one(layout: Layout, seed: int, run: Path, kind: str, condition: str
            "failures": int(metrics.get("failures", 0)),
            "detector_frames": int(metrics.get("detector_frames", 0)),
            # global fixes put on probation and how they ended (the realised per-probation error rates)
-           "probations": dict(getattr(loc.result, "integrity_probations", {}) or {}),
+           "probations": dict(loc.integrity_probations),
            "seconds": round(time.perf_counter() - t0, 2)}
     if mode == "calibrate":
-        stats = [asdict(s) for s in loc.result.integrity_stats]
+        stats = [asdict(s) for s in loc.integrity_stats]
         atomic_write_text(out / "integrity_stats.json", json.dumps(stats))
     atomic_write_text(row_path, json.dumps(row, indent=1))
     return row

@@ -27,12 +27,14 @@ import numpy as np
 def _errors(folder: Path):
     """(lateral error relative to the map, stated bound, localised flags) per frame of one output."""
     from scenesig.localiser.evaluation import lateral_heading_errors
-    from scenesig.localiser.outputs import map_relative_truth, read_output_files, reference_path, run_truth
+    from scenesig.localiser.outputs import map_relative_truth, reference_path, run_truth
     from scenesig.mapping.store import MapStore
     from scenesig.surveys.geometry import interpolate_poses
+    from scenesig.surveys.localisation import Localisation
     from scenesig.surveys.run import read_run
 
-    metrics, frames, times, poses = read_output_files(folder)
+    loc = Localisation.from_folder(folder)
+    metrics, frames, times, poses = loc.metrics, loc.frames, loc.times, loc.poses
     store = MapStore.open(metrics["map"])
     run = read_run(metrics["run_path"], check_images=False)
     tt, tp, source = run_truth(run)

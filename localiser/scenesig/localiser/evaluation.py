@@ -20,7 +20,9 @@
 * :func:`dead_reckoning_curve` -- for Fig. 25: P(travelling more than d blind), distance-weighted
   (so its value at 20 m is ``blind_fraction_over_20m``) or per blind stretch.
 
-The functions take arrays; reading runs and writing ``metrics.json`` is the replay module's job.
+What the errors are measured against comes from the map: :func:`reference_path` (its places in order)
+and :func:`map_relative_truth` (the truth carried into the map's frame).  The other functions take arrays;
+the metrics of a localised run are :mod:`scenesig.localiser.outputs`'s.
 """
 from __future__ import annotations
 
@@ -33,7 +35,7 @@ from scenesig.surveys.geometry import interpolate_poses, yaw_of
 
 from .failure import FAILURE_DISTANCE_M, is_failure
 
-__all__ = ["ReferencePath", "lateral_heading_errors", "blind_distances", "coverage_metrics",
+__all__ = ["ReferencePath", "reference_path", "map_relative_truth", "lateral_heading_errors", "blind_distances", "coverage_metrics",
            "dead_reckoning_curve", "summary", "evaluate", "EvaluationResult", "travelled"]
 
 
@@ -300,3 +302,32 @@ def evaluate(times, est_poses, truth_times, truth_poses, path, localised, resets
                "blind_fraction_over_20m": cov["blind_fraction_over_20m"],
                "distance_m": cov["distance_m"], "frames_evaluated": int(valid.sum())}
     return EvaluationResult(metrics, lateral, heading, blind_distances(dist, localised), dist)
+
+
+def reference_path(store) -> ReferencePath:
+    """The reference path: the map's places in order, closed if the route is a loop."""
+    ids = sorted(store.places)
+    poses = np.stack([store.places[i].T_world_place for i in ids])
+    if len(ids) > 2 and ids[-1] in store.places[ids[0]].neighbours:
+        poses = np.concatenate([poses, poses[:1]])
+    return ReferencePath(poses)
+
+
+def map_relative_truth(store, truth_poses: np.ndarray) -> np.ndarray | None:
+    """Truth expressed in the map's frame, or None when the map does not record its places' truth.
+
+    The map's frame is realised by the training runs' INS (combined per place by
+    :mod:`scenesig.mapping.georef`), whose error (metres, for a GPS-aided INS) every place carries.  A simulated map records each place's exact pose (``extra["T_truth_place"]``),
+    so a true pose can be carried into the map frame through the nearest place:
+    ``T_world_place · T_truth_place⁻¹ · T_truth``.  Errors against that are the localiser's own;
+    errors against the raw truth add the map's georeferencing error, which no localiser can remove.
+    """
+    ids = sorted(store.places)
+    if not ids or any("T_truth_place" not in store.places[i].extra for i in ids):
+        return None
+    Tw = np.stack([store.places[i].T_world_place for i in ids])
+    Tt = np.stack([np.asarray(store.places[i].extra["T_truth_place"], float) for i in ids])
+    P = np.asarray(truth_poses, float).reshape(-1, 4, 4)
+    near = np.argmin(np.linalg.norm(P[:, None, :3, 3] - Tt[None, :, :3, 3], axis=2), axis=1)
+    corr = Tw @ np.linalg.inv(Tt)             # (K,4,4) truth -> map frame at each place
+    return corr[near] @ P

@@ -1,90 +1,45 @@
-"""What ``scenesig localise`` writes, and reads back: ``trajectory.tum``, ``covariances.csv``,
-``frames.csv``, ``metrics.json``.
+"""What ``scenesig localise`` computes from a localised run for its files: the metrics and the errors.
 
-:func:`compute_metrics` turns a :class:`scenesig.localiser.replay.ReplayResult` into the ``metrics.json`` content:
-what the localiser knows (:func:`localisation_metrics`, no truth needed) and, where the run has truth,
-the evaluation against it (:func:`truth_metrics`: errors across the reference path through the map's
-places, see :mod:`scenesig.localiser.evaluation`); :func:`write_outputs` writes the files (and ``trajectory.png``,
-:mod:`scenesig.localiser.plots`) atomically, the trajectory first; :func:`evaluate_folder` runs the evaluation on a
-finished output folder (``scenesig evaluate``).  :data:`FRAMES_COLUMNS` is the one definition of ``frames.csv``'s
-columns, used by its writer and its reader :func:`read_frames_csv`.
+The run is a :class:`scenesig.surveys.localisation.Localisation` (arrays and metrics; it writes and reads
+``trajectory.tum``, ``covariances.csv``, ``frames.csv``, ``metrics.json`` itself).  Here:
+:func:`compute_metrics` turns it into the ``metrics.json`` content: what the localiser knows
+(:func:`localisation_metrics`, no truth needed) and, where the run has truth, the evaluation against it
+(:func:`truth_metrics`: errors across the reference path through the map's places, see
+:mod:`scenesig.localiser.evaluation`); :func:`evaluate_localisation` puts the metrics, the per-frame errors and
+the 95 % bounds into the localisation; :func:`write_outputs` does that and writes the files (and
+``trajectory.png``, :mod:`scenesig.localiser.plots`); :func:`evaluate_folder` runs the evaluation on a
+finished output folder (``scenesig evaluate``).
 """
 from __future__ import annotations
 
-import csv
-import hashlib
-import json
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from scenesig.mapping.store import MapStore
 from scenesig.surveys.errors import DataError
-from scenesig.surveys.io import atomic_write_text, make_dirs
+from scenesig.surveys.localisation import (  # noqa: F401  (re-exported: the files' one definition)
+    BOUND_COLUMNS,
+    FRAMES_COLUMNS,
+    TIMING_KEYS,
+    Localisation,
+    read_frames_csv,
+)
 from scenesig.surveys.run import read_run
-from scenesig.surveys.tum import read_tum, write_tum
-from scenesig.surveys.validation import csv_header
+from scenesig.surveys.tum import read_tum
 
-from .evaluation import ReferencePath, evaluate, summary
+from .evaluation import evaluate, map_relative_truth, reference_path, summary
 from .uncertainty import INFLATION
 
-if TYPE_CHECKING:
-    from .replay import ReplayResult
-
 __all__ = ["FRAMES_COLUMNS", "TIMING_KEYS", "FALSE_FIX_M", "reference_path", "map_relative_truth", "compute_metrics",
-           "write_frames_csv", "frames_csv_text", "read_frames_csv", "write_outputs", "detection_rates",
-           "inlier_types", "read_output_files",
-           "read_localisation"]
+           "read_frames_csv", "evaluate_localisation", "write_outputs", "detection_rates", "inlier_types",
+           "evaluate_folder"]
 
-#: Columns of ``frames.csv`` (the errors are NaN without truth; the bounds NaN without a pose; ``integrity_alert``
-#: 1 where the integrity monitor refused the frame's fix, :mod:`scenesig.localiser.integrity`).
-FRAMES_COLUMNS = ("time", "place", "detections", "inliers", "localised", "lateral_error", "heading_error",
-                  "distance_since_localisation", "lateral_bound_95_m", "longitudinal_bound_95_m",
-                  "heading_bound_95_deg", "integrity_alert", "signature_inliers", "point_inliers")
-#: the 95 % bounds (NaN without a pose)
-BOUND_COLUMNS = FRAMES_COLUMNS[8:11]
-#: the per-type inlier counts (which measurement types the solver used; hybrid: both), integers
-_COUNT_COLUMNS = ("signature_inliers", "point_inliers")
-#: the columns an output folder written before the bounds existed has (still read)
-_FRAMES_REQUIRED = FRAMES_COLUMNS[:8]
-#: ``metrics.json`` entries that measure the machine rather than the result (they differ between runs).
-TIMING_KEYS = ("ms_per_detection", "ms_per_solve", "ms_per_odometry_update", "ms_per_retrieval", "realtime_factor",
-               "wall_seconds", "cpu_seconds", "cpu_ms_per_frame")
 #: Accepted localisations further than this from the truth are ``false_fixes`` (metres).
 FALSE_FIX_M = 5.0
 
 
-def reference_path(store: MapStore) -> ReferencePath:
-    """The reference path: the map's places in order, closed if the route is a loop."""
-    ids = sorted(store.places)
-    poses = np.stack([store.places[i].T_world_place for i in ids])
-    if len(ids) > 2 and ids[-1] in store.places[ids[0]].neighbours:
-        poses = np.concatenate([poses, poses[:1]])
-    return ReferencePath(poses)
-
-
-def map_relative_truth(store: MapStore, truth_poses: np.ndarray) -> np.ndarray | None:
-    """Truth expressed in the map's frame, or None when the map does not record its places' truth.
-
-    The map's frame is realised by the training runs' INS (combined per place by
-    :mod:`scenesig.mapping.georef`), whose error (metres, for a GPS-aided INS) every place carries.  A simulated map records each place's exact pose (``extra["T_truth_place"]``),
-    so a true pose can be carried into the map frame through the nearest place:
-    ``T_world_place · T_truth_place⁻¹ · T_truth``.  Errors against that are the localiser's own;
-    errors against the raw truth add the map's georeferencing error, which no localiser can remove.
-    """
-    ids = sorted(store.places)
-    if not ids or any("T_truth_place" not in store.places[i].extra for i in ids):
-        return None
-    Tw = np.stack([store.places[i].T_world_place for i in ids])
-    Tt = np.stack([np.asarray(store.places[i].extra["T_truth_place"], float) for i in ids])
-    P = np.asarray(truth_poses, float).reshape(-1, 4, 4)
-    near = np.argmin(np.linalg.norm(P[:, None, :3, 3] - Tt[None, :, :3, 3], axis=2), axis=1)
-    corr = Tw @ np.linalg.inv(Tt)             # (K,4,4) truth -> map frame at each place
-    return corr[near] @ P
-
-
-def compute_metrics(result: ReplayResult, store: MapStore, max_path_distance_m: float | None = None):
+def compute_metrics(result: Localisation, store: MapStore, max_path_distance_m: float | None = None):
     """``metrics.json`` content and the evaluation behind it (per-frame errors, or NaN without truth).
 
     Two parts, so a localisation needs no truth (a vehicle localising has none).
@@ -164,7 +119,7 @@ def _odometry_evaluation(result):
                             blind_distances(dist, np.asarray(result.localised, bool)), dist)
 
 
-def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> dict:
+def localisation_metrics(result: Localisation, store: MapStore, truth=None) -> dict:
     """The part of ``metrics.json`` that needs no truth (see :func:`compute_metrics`).  ``truth``
     ``(times, poses)``, where given, only measures the distances (else the odometry does)."""
     from scenesig.surveys.geometry import interpolate_poses
@@ -224,7 +179,7 @@ def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> d
         "corrupt_frames": [run.frame_files[i] for i in result.corrupt] if run.frame_files else [],
         "method_config": result.method_config,
         # every setting behind the result, resolved: replay, localiser, pose graph, method (+ relocaliser)
-        "settings": getattr(result, "settings", None) or {},
+        "settings": result.settings or {},
         "map_id": store.map_id,
         "map_generation": int(store.generation),
         "run_path": str(Path(run.root).resolve()) if run.root is not None else None,
@@ -236,12 +191,11 @@ def localisation_metrics(result: ReplayResult, store: MapStore, truth=None) -> d
     for k in ("frames_dropped", "frames_detected", "odometry_queue_max", "odometry_coalesced", "lag_max_s"):
         if k in tm:
             metrics[k] = tm[k]
-    flags = getattr(result, "integrity_alert", None)
-    metrics["integrity_alerts"] = len(getattr(result, "integrity_alerts", None) or [])
-    metrics["integrity_alert_frames"] = int(np.sum(flags)) if flags is not None else 0
-    if getattr(result, "integrity_alerts", None):
+    metrics["integrity_alerts"] = len(result.integrity_alerts or [])
+    metrics["integrity_alert_frames"] = int(np.sum(result.integrity_alert))
+    if result.integrity_alerts:
         metrics["integrity_alert_list"] = result.integrity_alerts[:20]   # localiser.integrity.Alert
-    if getattr(result, "camera_check", None) is not None:
+    if result.camera_check is not None:
         metrics["camera_check"] = result.camera_check     # mapping.camera_check.assess, before the replay
     return metrics
 
@@ -271,9 +225,8 @@ def truth_metrics(result, store: MapStore, truth_times, truth_poses, source: str
                   max_path_distance_m: float | None = None):
     """The evaluation against truth (see :func:`compute_metrics`): ``(metrics, EvaluationResult)``.
 
-    ``result`` needs ``times``, ``poses``, ``valid``, ``localised``, ``resets``, ``failures``, ``oracle``,
-    ``first_fix_time``, ``relocalisations`` and ``lateral_bound_95_m`` (or ``covariances``) -- a
-    :class:`scenesig.localiser.replay.ReplayResult`, or the same read back from an output folder.
+    ``result`` is a :class:`scenesig.surveys.localisation.Localisation`, from the replay or read back from an
+    output folder (its bounds then those ``frames.csv`` recorded).
     """
     from .uncertainty import bounds_from_result
 
@@ -346,7 +299,7 @@ def detection_rates(detections, inliers) -> dict:
             "inliers_per_detection_mean": float(k.sum() / d.sum()) if d.sum() > 0 else None}
 
 
-def _evaluate_valid(result: ReplayResult, truth_times, truth_poses, store: MapStore, max_path_distance_m):
+def _evaluate_valid(result: Localisation, truth_times, truth_poses, store: MapStore, max_path_distance_m):
     """:func:`scenesig.localiser.evaluation.evaluate` over the frames with a world pose (all of them with an oracle;
     from the first fix on without one), its per-frame series put back on every frame (NaN elsewhere)."""
     from scenesig.surveys.geometry import interpolate_poses
@@ -411,197 +364,49 @@ def _no_oracle_metrics(result, ev, truth_times, truth_poses) -> dict:
     return {"first_fix_m": m["first_fix_m"], "relocalise_m": m["relocalise_m"], "false_fixes": false}
 
 
-def _fmt(v: float) -> str:
-    return "nan" if not np.isfinite(v) else f"{v:.6f}"
+def evaluate_localisation(loc: Localisation, store: MapStore, max_path_distance_m: float | None = None):
+    """Complete a localisation for its files: the 95 % bounds (:mod:`scenesig.localiser.uncertainty`), the
+    metrics (:func:`compute_metrics`) and the per-frame errors (NaN without truth) go into ``loc``, and the
+    drawing of ``trajectory.png`` (it needs the map); returns the evaluation
+    (:class:`scenesig.localiser.evaluation.EvaluationResult`)."""
+    from .uncertainty import bounds_from_result
+
+    bounds_from_result(loc, store)
+    metrics, ev = compute_metrics(loc, store, max_path_distance_m)
+    _fill(loc, metrics, ev, store)
+    return ev
 
 
-def write_frames_csv(path: Path, result: ReplayResult, ev, bounds: dict | None = None) -> None:
-    """``frames.csv`` (:data:`FRAMES_COLUMNS`): per frame the replay's record, the errors of ``ev`` (NaN
-    without truth) and the 95 % bounds (:mod:`scenesig.localiser.uncertainty`)."""
-    atomic_write_text(path, frames_csv_text(result, ev, bounds))
+def _fill(loc: Localisation, metrics: dict, ev, store: MapStore) -> None:
+    # new arrays, not writes into the old ones: a copy made with dataclasses.replace shares the table
+    loc.frames = {**loc.frames, "lateral_error": np.asarray(ev.lateral_m, float),
+                  "heading_error": np.asarray(ev.heading_deg, float)}
+    loc.metrics = metrics
+    loc.figure = _Figure(store, ev)
 
 
-def frames_csv_text(result: ReplayResult, ev, bounds: dict | None = None) -> str:
-    """The text of ``frames.csv`` (see :func:`write_frames_csv`)."""
-    n = len(result.times)
-    b = bounds or {}
-    cols = [b.get(c, np.full(n, np.nan)) for c in BOUND_COLUMNS]
-    flag = getattr(result, "integrity_alert", None)
-    if flag is None:
-        flag = b.get("integrity_alert")
-    counts = [np.zeros(n) if flag is None else np.nan_to_num(np.asarray(flag, float)),
-              *(np.asarray(getattr(result, c), float) for c in _COUNT_COLUMNS)]
-    lines = [",".join(FRAMES_COLUMNS)]
-    for i, t in enumerate(result.times):
-        lines.append(",".join([f"{t:.6f}", str(int(result.places[i])), str(int(result.detections[i])),
-                               str(int(result.inliers[i])), str(int(result.localised[i])),
-                               _fmt(ev.lateral_m[i]), _fmt(ev.heading_deg[i]),
-                               _fmt(result.distance_since_localisation[i]), *(_fmt(c[i]) for c in cols),
-                               *(str(int(c[i])) if np.isfinite(c[i]) else "0" for c in counts)]))
-    return "\n".join(lines) + "\n"
+class _Figure:
+    """Draws a localisation's ``trajectory.png`` against the map and the evaluation it was made with."""
 
+    def __init__(self, store: MapStore, ev):
+        self.store, self.ev = store, ev
 
-def read_frames_csv(path) -> dict:
-    """``frames.csv`` as ``{column: (N,) float array}``; a :class:`DataError` naming the file and line when
-    a column of :data:`FRAMES_COLUMNS` is missing or a value is not a number (the bound columns may be
-    missing: outputs written before they existed)."""
-    path = Path(path)
-    try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            reader = csv.reader(fh)
-            header = csv_header(reader, path, _FRAMES_REQUIRED)
-            cols = {h: [] for h in header}
-            for ln, row in enumerate(reader, start=2):
-                if not row:
-                    continue
-                if len(row) != len(header):
-                    raise DataError(path, f"expected {len(header)} values, got {len(row)}", line=ln)
-                for h, v in zip(header, row):
-                    try:
-                        cols[h].append(float(v))
-                    except ValueError:
-                        raise DataError(path, f"column {h!r}: {v!r} is not a number", line=ln) from None
-    except UnicodeDecodeError as exc:
-        raise DataError(path, f"not UTF-8 text: {exc}") from None
-    return {h: np.asarray(v, dtype=float) for h, v in cols.items()}
-
-
-def write_outputs(result: ReplayResult, store: MapStore, out, max_path_distance_m: float | None = None,
-                  figure: bool = True) -> dict:
-    """Write trajectory.tum, covariances.csv, frames.csv, metrics.json (and trajectory.png) into ``out``;
-    return the metrics.
-
-    What the localiser produced is written whether or not the run has truth -- the trajectory first,
-    and it never depends on the truth; where there is truth the evaluation (:func:`compute_metrics`)
-    fills the errors in.
-    """
-    from .uncertainty import bounds_from_result, write_covariances_csv
-
-    out = Path(out)
-    make_dirs(out)
-    # without INS/GPS there is no pose before the first fix: those frames have none
-    v = np.asarray(result.valid, bool)
-    write_tum(out / "trajectory.tum", result.times[v], result.poses[v])
-    bounds = bounds_from_result(result, store)
-    write_covariances_csv(out / "covariances.csv", result.times[v], result.planar_covariances[v])
-    metrics, ev = compute_metrics(result, store, max_path_distance_m)
-    write_frames_csv(out / "frames.csv", result, ev, bounds)
-    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, allow_nan=False) + "\n")
-    if figure:
+    def __call__(self, path, loc: Localisation) -> None:
         from .plots import plot_trajectory
 
-        plot_trajectory(out / "trajectory.png", result, store, ev, metrics)
-    return metrics
+        plot_trajectory(path, loc, self.store, self.ev, loc.metrics)
 
 
-def read_output_files(folder):
-    """``(metrics, frames, times, poses)`` of a localise output folder: ``metrics.json`` (a dict with at
-    least ``method`` and ``run``), ``frames.csv`` (:func:`read_frames_csv`) and ``trajectory.tum``
-    (one pose per frame, at the frames' times; with ``--oracle none`` the frames before the first fix have
-    no pose and get NaN); DataError naming the file if one is missing or wrong."""
-    folder = Path(folder)
-    mpath = folder / "metrics.json"
-    if not mpath.is_file():
-        raise DataError(mpath, "missing: not a `scenesig localise` output folder")
-    try:
-        metrics = json.loads(mpath.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise DataError(mpath, f"invalid JSON: {exc.msg}", line=exc.lineno) from None
-    if not isinstance(metrics, dict) or "method" not in metrics or "run" not in metrics:
-        raise DataError(mpath, "expected an object with at least 'method' and 'run'")
-    fpath = folder / "frames.csv"
-    if not fpath.is_file():
-        raise DataError(fpath, "missing")
-    frames = read_frames_csv(fpath)
-    tpath = folder / "trajectory.tum"
-    if not tpath.is_file():
-        raise DataError(tpath, "missing")
-    if metrics.get("oracle") == "none" and not any(
-            ln.strip() and not ln.lstrip().startswith("#") for ln in tpath.read_text(encoding="utf-8").splitlines()):
-        times, poses = np.zeros(0), np.zeros((0, 4, 4))     # never localised: no pose at all
-    else:
-        times, poses = read_tum(tpath)
-    n = len(frames["time"])
-    if len(times) != n and metrics.get("oracle") != "none":
-        raise DataError(tpath, f"{len(times)} poses but frames.csv has {n} frames")
-    if len(times) != n:
-        # without INS/GPS there is no pose before the first fix, nor after the integrity monitor dropped
-        # one (localiser.integrity): the trajectory holds the frames that have a pose
-        ft = np.asarray(frames["time"], float)
-        k = np.clip(np.searchsorted(ft, times - 1e-3), 0, max(n - 1, 0))
-        if len(times) > n or (len(times) and (np.max(np.abs(ft[k] - times)) > 1e-3 or np.any(np.diff(k) <= 0))):
-            raise DataError(tpath, f"its {len(times)} poses are not at frames of frames.csv's {n}")
-        full = np.full((n, 4, 4), np.nan)
-        full[k] = poses.reshape(-1, 4, 4)
-        poses, times = full, ft
-    if n and np.max(np.abs(times - frames["time"])) > 1e-3:
-        raise DataError(tpath, "times differ from frames.csv's")
-    return metrics, frames, times, poses
+def write_outputs(loc: Localisation, store: MapStore, out, max_path_distance_m: float | None = None,
+                  figure: bool = True) -> dict:
+    """Evaluate ``loc`` (:func:`evaluate_localisation`) and write trajectory.tum, covariances.csv, frames.csv,
+    metrics.json (and trajectory.png) into ``out`` (:meth:`Localisation.write`); return the metrics.
 
-
-def read_localisation(folder, search=()):
-    """Read a ``scenesig localise`` output back as a :class:`scenesig.mapping.update.Localisation` (for ``scenesig
-    map update``); the run is found by ``metrics.json``'s ``run_path``, else by its name beside it or in
-    the folders ``search``.  DataError naming the file if something is missing or inconsistent."""
-    from scenesig.mapping.update import Localisation, find_run
-
-    folder = Path(folder)
-    mpath = folder / "metrics.json"
-    metrics, frames, times, poses = read_output_files(folder)
-    if metrics["method"] != "signatures":
-        raise DataError(mpath, f"method is {metrics['method']!r}: only a scene-signature localisation tells "
-                               f"where the map's signatures were weak")
-    tpath = folder / "trajectory.tum"
-    # the run: where the localisation read it, else by name beside it or in ``search``
-    hint = Path(metrics["run_path"]) if metrics.get("run_path") else None
-    search = ([hint.parent] if hint is not None else []) + [Path(d) for d in search]
-    run = read_run(find_run(metrics["run"], [hint], search))
-    if run.name != metrics["run"]:
-        raise DataError(mpath, f"names run {metrics['run']!r} but {run.root} holds run {run.name!r}")
-    n = len(run.frame_times)
-    if len(times) != n:
-        raise DataError(tpath, f"{len(times)} poses for run {run.name!r} of {n} frames: not this run's localisation")
-    if not np.allclose(times, run.frame_times, atol=1e-5):
-        raise DataError(tpath, f"timestamps are not those of run {run.name!r}'s frames")
-    h = hashlib.sha256()
-    for name in ("metrics.json", "trajectory.tum", "frames.csv"):
-        data = (folder / name).read_bytes()
-        if name == "metrics.json":  # the machine-dependent parts (timings, paths) are not inputs
-            data = json.dumps({k: v for k, v in metrics.items() if k not in (*TIMING_KEYS, "map", "run_path")},
-                              sort_keys=True).encode()
-        h.update(hashlib.sha256(data).digest())
-    return Localisation(folder, metrics, times, np.asarray(poses).reshape(-1, 4, 4), frames, run, h.hexdigest())
-
-
-class _Track:
-    """A localisation read back from its output folder, shaped as :func:`truth_metrics` and
-    :func:`scenesig.localiser.plots.plot_trajectory` read a :class:`scenesig.localiser.replay.ReplayResult`."""
-
-    def __init__(self, metrics: dict, frames: dict, times, poses, run):
-        n = len(times)
-        self.run = run
-        self.method = metrics["method"]
-        self.times = np.asarray(times, float)
-        self.poses = np.asarray(poses, float).reshape(-1, 4, 4)
-        self.valid = np.isfinite(self.poses[:, :3, 3]).all(axis=1)
-        self.localised = np.asarray(frames["localised"]) > 0
-        self.places = frames["place"].astype(int)
-        self.detections = frames["detections"].astype(int)
-        self.inliers = frames["inliers"].astype(int)
-        self.distance_since_localisation = frames["distance_since_localisation"]
-        self.resets = np.zeros(n, dtype=bool)
-        for tr in metrics.get("reset_times") or []:     # as the replay marks them
-            self.resets[min(int(np.searchsorted(self.times, tr, side="right")), n - 1)] = True
-        self.failures = int(metrics.get("failures", 0))
-        self.oracle = metrics.get("oracle", "ins")
-        self.oracle_reads = int(metrics.get("oracle_reads", 0))
-        self.first_fix_time = metrics.get("first_fix_time")
-        self.relocalisations = [tuple(p) for p in metrics.get("relocalisation_times") or []]
-        self.bounds = {c: frames.get(c, np.full(n, np.nan)) for c in BOUND_COLUMNS}
-        self.integrity_alert = frames.get("integrity_alert", np.zeros(n))
-        self.integrity_alerts = list(metrics.get("integrity_alert_list") or [])
-        self.signature_inliers = frames.get("signature_inliers", np.zeros(n)).astype(int)
-        self.point_inliers = frames.get("point_inliers", np.zeros(n)).astype(int)
+    What the localiser produced is written whether or not the run has truth -- the trajectory never
+    depends on the truth; where there is truth the evaluation fills the errors in.
+    """
+    evaluate_localisation(loc, store, max_path_distance_m)
+    return loc.write(out, figure=figure)
 
 
 def evaluate_folder(folder, truth=None, map_root=None, max_path_distance_m: float | None = None,
@@ -623,7 +428,8 @@ def evaluate_folder(folder, truth=None, map_root=None, max_path_distance_m: floa
 
     folder = Path(folder)
     mpath = folder / "metrics.json"
-    metrics, frames, times, poses = read_output_files(folder)
+    loc = Localisation.from_folder(folder)
+    metrics = loc.metrics
     if map_root is None and not metrics.get("map"):
         raise DataError(mpath, "names no map: give the map")
     store = MapStore.open(map_root if map_root is not None else metrics["map"])
@@ -646,13 +452,10 @@ def evaluate_folder(folder, truth=None, map_root=None, max_path_distance_m: floa
     if run is None:     # the run folder is gone: what the figure needs of it
         run = SimpleNamespace(name=metrics["run"], conditions=metrics.get("conditions", []), truth_times=tt,
                               truth_poses=tp, groundtruth_times=None, groundtruth_poses=None, root=None)
-    track = _Track(metrics, frames, times, poses, run)
-    tm, ev = truth_metrics(track, store, tt, tp, source, max_path_distance_m)
-    metrics = merge_truth_metrics(metrics, tm)
-    write_frames_csv(folder / "frames.csv", track, ev, track.bounds)
-    atomic_write_text(mpath, json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+    loc.run = run
+    tm, ev = truth_metrics(loc, store, tt, tp, source, max_path_distance_m)
+    _fill(loc, merge_truth_metrics(metrics, tm), ev, store)
+    loc.write_results(folder)
     if figure:
-        from .plots import plot_trajectory
-
-        plot_trajectory(folder / "trajectory.png", track, store, ev, metrics)
-    return metrics
+        loc.figure(folder / "trajectory.png", loc)
+    return loc.metrics

@@ -2,24 +2,20 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from scenesig.mapping.store import MapStore
 from scenesig.surveys.geometry import interpolate_poses
 from scenesig.surveys.io import atomic_path
+from scenesig.surveys.localisation import Localisation
 
-from .evaluation import lateral_heading_errors
-from .outputs import map_relative_truth, reference_path
-
-if TYPE_CHECKING:
-    from .replay import ReplayResult
+from .evaluation import lateral_heading_errors, map_relative_truth, reference_path
 
 __all__ = ["plot_trajectory"]
 
 
-def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metrics: dict) -> None:
+def plot_trajectory(path: Path, result: Localisation, store: MapStore, ev, metrics: dict) -> None:
     """``trajectory.png``: estimate vs truth vs INS on the map; lateral error over distance."""
     import matplotlib
 
@@ -66,8 +62,8 @@ def plot_trajectory(path: Path, result: ReplayResult, store: MapStore, ev, metri
         edges = np.flatnonzero(np.diff(np.concatenate([[0], within.astype(int), [0]])))
         for a, b in zip(edges[::2], edges[1::2]):
             bx.axvspan(s[a], s[min(b, len(s) - 1)], color="tab:green", alpha=0.15, lw=0)
-    bound = getattr(result, "bounds", None)
-    if bound is not None and np.isfinite(bound["lateral_bound_95_m"]).any():
+    bound = result.bounds
+    if np.isfinite(bound["lateral_bound_95_m"]).any():
         lb = bound["lateral_bound_95_m"]
         bx.fill_between(s, -lb, lb, color="tab:purple", alpha=0.12, lw=0, label="95 % lateral bound")
     if np.isfinite(ev.lateral_m).any():

@@ -58,13 +58,13 @@ import json
 import logging
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from scenesig.mapping.store import MapStore
 from scenesig.surveys.errors import CorruptImageError, DataError
+from scenesig.surveys.localisation import Localisation
 from scenesig.surveys.run import SurveyRun, read_run
 from scenesig.surveys.settings import merge_settings
 
@@ -82,10 +82,9 @@ from .session import Session, _Job, check_layers
 
 log = logging.getLogger(__name__)
 
-__all__ = ["default_config", "DEFAULT_EVERY", "resolve_config", "method_settings", "ORACLES", "ReplayResult", "replay", "reference_path", "compute_metrics", "write_outputs",
-           "localise", "localise_run", "FRAMES_COLUMNS", "TIMING_KEYS"]
-
-log = logging.getLogger(__name__)
+__all__ = ["default_config", "DEFAULT_EVERY", "resolve_config", "method_settings", "ORACLES", "replay",
+           "reference_path", "compute_metrics", "write_outputs", "localise", "localise_run", "FRAMES_COLUMNS",
+           "TIMING_KEYS"]
 
 #: Deterministic mode: the detector on every N-th frame -- McManus et al. 2015, §4.3: "every 4th image",
 #: 5 Hz on a 20 Hz camera.  The one default of ``every`` (a call argument, like ``realtime`` and ``speed``).
@@ -107,54 +106,6 @@ default_config = {
 
 #: Where the localiser's first pose and its recovery after a failure come from.
 ORACLES = ("ins", "none")
-
-
-@dataclass
-class ReplayResult:
-    """Per-frame outputs of one replay and its timings."""
-
-    run: SurveyRun
-    method: str
-    mode: str
-    every: int | None
-    times: np.ndarray                 # (N,) frame times
-    poses: np.ndarray                 # (N,4,4) estimates T_world_vehicle (snapped)
-    places: np.ndarray                # (N,) place used (nearest place for frames without detection)
-    detections: np.ndarray            # (N,) detections (0 where the detector did not run)
-    inliers: np.ndarray               # (N,)
-    localised: np.ndarray             # (N,) bool: a localisation from this frame was accepted
-    resets: np.ndarray                # (N,) bool: an oracle reset happened since the previous frame
-    detector_ran: np.ndarray          # (N,) bool
-    distance_since_localisation: np.ndarray  # (N,) odometry distance since the last fix or reset (m)
-    reasons: list                     # (N,) solver's rejection reason or None
-    failures: int
-    reset_times: list = field(default_factory=list)   # times of the oracle resets (odometry times)
-    corrupt: dict = field(default_factory=dict)       # frame -> reason: images that failed strict decoding
-    timings: dict = field(default_factory=dict)
-    method_config: dict = field(default_factory=dict)  # the method's settings (WeakLocaliser.method_config)
-    oracle: str = "ins"
-    oracle_reads: int = 0
-    valid: np.ndarray | None = None   # (N,) bool: the localiser had a world pose at this frame
-    first_fix_time: float | None = None      # oracle "none": the first pose found from the map
-    relocalisations: list = field(default_factory=list)  # oracle "none": (t_lost, t_found) pairs
-    covariances: np.ndarray | None = None    # (N,6,6) marginal covariance of each frame's pose (vehicle frame,
-                                             # GTSAM order: rotation, translation); NaN without a pose
-    settings: dict = field(default_factory=dict)   # every setting of the replay, resolved (resolve_config)
-    camera_check: dict | None = None         # what the camera check found (mapping.camera_check.assess)
-    integrity_alert: np.ndarray | None = None  # (N,) bool: the integrity monitor refused this frame's fix
-    integrity_alerts: list = field(default_factory=list)  # localiser.integrity.Alert dicts
-    integrity_stats: list = field(default_factory=list)   # localiser.integrity.FrameStats of every tracked frame
-    integrity_probations: dict = field(default_factory=dict)  # probations started, accepted, refused
-    signature_inliers: np.ndarray | None = None  # (N,) the solver's inliers that are signature detections
-    point_inliers: np.ndarray | None = None      # (N,) ... that are point-feature matches (hybrid: both)
-
-    def __post_init__(self):
-        if self.valid is None:
-            self.valid = np.ones(len(self.times), dtype=bool)
-        if self.signature_inliers is None:
-            self.signature_inliers = np.zeros(len(self.times), dtype=int)
-        if self.point_inliers is None:
-            self.point_inliers = np.zeros(len(self.times), dtype=int)
 
 
 def _oracle(run: SurveyRun):
@@ -541,8 +492,9 @@ def _settings(cfg: dict, every: int | None, realtime: bool, speed: float, oracle
 
 def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signatures", every: int = DEFAULT_EVERY,
            realtime: bool = False, speed: float = 1.0, config: dict | None = None,
-           progress: bool = False, oracle: str | None = None, retrieval=None) -> ReplayResult:
-    """Localise one run against a map.
+           progress: bool = False, oracle: str | None = None, retrieval=None) -> Localisation:
+    """Localise one run against a map: a :class:`scenesig.surveys.localisation.Localisation` holding every
+    frame's record, without metrics yet (:func:`scenesig.localiser.outputs.evaluate_localisation` adds them).
 
     Parameters
     ----------
@@ -614,16 +566,22 @@ def replay(store: MapStore, run: SurveyRun, method: WeakLocaliser | str = "signa
     if reloc is not None and reloc.ms_retrieval:
         timings["ms_per_retrieval"] = float(np.mean(reloc.ms_retrieval))
         timings["global_searches"] = int(reloc.searches)
-    return ReplayResult(run, method.name, "realtime" if realtime else "deterministic", None if realtime else every,
-                        rec.times, rec.poses, rec.places, rec.detections, rec.inliers, rec.localised, resets,
-                        rec.detector_ran, rec.distance, rec.reasons, loc.failures, list(loc.reset_times),
-                        dict(sorted(rec.corrupt.items())), timings, _json_safe(method.method_config()),
-                        oracle, loc.oracle_reads, rec.valid.copy(), loc.first_fix_time, list(loc.relocalisations),
-                        rec.covariances, _settings(resolved, None if realtime else every, realtime, speed, oracle),
-                        camera_check=None, integrity_alert=rec.alert.copy(),
-                        integrity_alerts=[a.as_dict() for a in monitor.alerts], integrity_stats=list(monitor.history),
-                        integrity_probations=dict(monitor.probations),
-                        signature_inliers=rec.signature_inliers, point_inliers=rec.point_inliers)
+    poses = rec.poses.copy()
+    poses[~rec.valid] = np.nan        # no world pose: nothing to report (the recorder may hold a placeholder)
+    frames = {"time": rec.times, "place": rec.places, "detections": rec.detections, "inliers": rec.inliers,
+              "localised": rec.localised, "distance_since_localisation": rec.distance,
+              "integrity_alert": rec.alert.copy(), "signature_inliers": rec.signature_inliers,
+              "point_inliers": rec.point_inliers}
+    return Localisation(
+        run=run, method=method.name, mode="realtime" if realtime else "deterministic",
+        every=None if realtime else every, times=rec.times, poses=poses, valid=rec.valid.copy(), frames=frames,
+        resets=resets, covariances=rec.covariances, detector_ran=rec.detector_ran, reasons=rec.reasons,
+        failures=loc.failures, reset_times=list(loc.reset_times), corrupt=dict(sorted(rec.corrupt.items())),
+        timings=timings, method_config=_json_safe(method.method_config()), oracle=oracle,
+        oracle_reads=loc.oracle_reads, first_fix_time=loc.first_fix_time, relocalisations=list(loc.relocalisations),
+        settings=_settings(resolved, None if realtime else every, realtime, speed, oracle),
+        integrity_alerts=[a.as_dict() for a in monitor.alerts], integrity_stats=list(monitor.history),
+        integrity_probations=dict(monitor.probations))
 
 
 def _warn_weak_places(store: MapStore, run: SurveyRun) -> None:
@@ -683,7 +641,7 @@ def localise(map_root, run_root, out, method: str = "signatures", every: int = D
 
 def localise_run(map_root, run_root, method: str = "signatures", every: int = DEFAULT_EVERY, realtime: bool = False,
                  speed: float = 1.0, config: dict | None = None, progress: bool = True,
-                 oracle: str | None = None, camera_check: bool = True) -> tuple[ReplayResult, MapStore]:
+                 oracle: str | None = None, camera_check: bool = True) -> tuple[Localisation, MapStore]:
     """:func:`localise` without writing: ``(result, store)``.  ``run_root`` is a run folder or a
     :class:`SurveyRun` already read (it must then carry its INS/GPS for ``oracle="ins"``)."""
     import dataclasses

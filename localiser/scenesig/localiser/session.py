@@ -364,7 +364,7 @@ class Session:
         return Estimate(float(t), T, C, self._lateral_bound(T, C), float(loc.distance_since_localisation), self.state)
 
     def _lateral_bound(self, T: np.ndarray, C: np.ndarray) -> float:
-        from .outputs import reference_path
+        from .evaluation import reference_path
         from .uncertainty import frame_bounds, planar_covariances
 
         if self._path is None:

@@ -15,8 +15,8 @@ localisation reads:
   ``z = 1.96`` (the two-sided 95 % quantile of a normal error) and ``k`` the one inflation factor
   :data:`INFLATION` (see below).  The bounds are relative to the map: the marginal says how well the
   localiser knows its pose in the map's frame; the map's own georeferencing error is not in it.
-* ``covariances.csv`` beside ``trajectory.tum`` (:func:`write_covariances_csv`): one row per pose of
-  the trajectory, ``time, xx, xy, xyaw, yy, yyaw, yawyaw`` -- the upper triangle of the planar 3x3
+* ``covariances.csv`` beside ``trajectory.tum`` (written by
+  :meth:`scenesig.surveys.localisation.Localisation.write`): one row per pose of the trajectory, ``time, xx, xy, xyaw, yy, yyaw, yawyaw`` -- the upper triangle of the planar 3x3
   covariance in the world frame, in m², m·rad and rad², already inflated by ``k²`` (so it is the
   covariance the bounds come from).  The TUM file itself stays plain (evo reads it).
 
@@ -31,16 +31,18 @@ call, localised against the demo map with ``--oracle none``
 """
 from __future__ import annotations
 
-import csv
-from pathlib import Path
-
 import numpy as np
 
-from scenesig.surveys.errors import DataError
-from scenesig.surveys.io import atomic_write_text
+from scenesig.surveys.localisation import (  # noqa: F401  (re-exported: the files are the localisation's)
+    BOUND_COLUMNS,
+    COVARIANCE_COLUMNS,
+    read_covariances_csv,
+)
+
+from .evaluation import reference_path
 
 __all__ = ["Z_95", "INFLATION", "BOUND_COLUMNS", "COVARIANCE_COLUMNS", "planar_covariances", "frame_bounds",
-           "bounds_from_result", "write_covariances_csv", "read_covariances_csv"]
+           "bounds_from_result", "read_covariances_csv"]
 
 #: two-sided 95 % quantile of a normal distribution
 Z_95 = 1.959963984540054
@@ -49,10 +51,6 @@ Z_95 = 1.959963984540054
 #: right-map runs of 12 calibration worlds (``scenesig bench integrity --seeds 1000-1011 --calibrate
 #: --choose``; never reported) have bound_coverage_95 >= 0.9 (median need 3.6; before, 5.2 from four demo runs)
 INFLATION = 8.25
-#: the per-frame bounds ``frames.csv`` carries
-BOUND_COLUMNS = ("lateral_bound_95_m", "longitudinal_bound_95_m", "heading_bound_95_deg")
-#: ``covariances.csv``'s columns: time, then the upper triangle of the planar (x, y, yaw) covariance
-COVARIANCE_COLUMNS = ("time", "xx", "xy", "xyaw", "yy", "yyaw", "yawyaw")
 
 
 def planar_covariances(poses: np.ndarray, covariances: np.ndarray, inflation: float = INFLATION) -> np.ndarray:
@@ -100,59 +98,16 @@ def frame_bounds(poses: np.ndarray, planar: np.ndarray, path) -> dict:
     return out
 
 
-def bounds_from_result(result, store) -> dict:
-    """The bounds of a replay (computed once and kept on ``result``), or those an output folder recorded
-    (``result.bounds``); NaN throughout where neither is known."""
-    b = getattr(result, "bounds", None)
-    if b is not None:
-        return b
-    from .outputs import reference_path
-
-    n = len(result.times)
-    C = getattr(result, "covariances", None)
-    if C is None:
-        b = {c: np.full(n, np.nan) for c in BOUND_COLUMNS}
-        planar = np.full((n, 3, 3), np.nan)
-    else:
-        planar = planar_covariances(result.poses, C)
-        b = frame_bounds(result.poses, planar, reference_path(store))
-    result.bounds, result.planar_covariances = b, planar
-    return b
-
-
-def write_covariances_csv(path, times, planar) -> None:
-    """``covariances.csv``: :data:`COVARIANCE_COLUMNS`, one row per (time, planar 3x3 covariance)."""
-    P = np.asarray(planar, float).reshape(-1, 3, 3)
-    iu = np.triu_indices(3)
-    lines = [",".join(COVARIANCE_COLUMNS)]
-    for t, c in zip(np.asarray(times, float), P):
-        lines.append(",".join([f"{t:.9f}"] + [repr(float(v)) for v in c[iu]]))
-    atomic_write_text(path, "\n".join(lines) + "\n")
-
-
-def read_covariances_csv(path) -> tuple[np.ndarray, np.ndarray]:
-    """``(times (N,), covariances (N,3,3))`` of a ``covariances.csv``; DataError naming the file and line."""
-    path = Path(path)
-    times, rows = [], []
-    with open(path, newline="", encoding="utf-8") as fh:
-        reader = csv.reader(fh)
-        header = [h.strip() for h in next(reader, [])]
-        if tuple(header) != COVARIANCE_COLUMNS:
-            raise DataError(path, f"header must be {','.join(COVARIANCE_COLUMNS)}, got {','.join(header)}", line=1)
-        for ln, row in enumerate(reader, start=2):
-            if not row:
-                continue
-            try:
-                vals = [float(v) for v in row]
-            except ValueError:
-                raise DataError(path, "not a number", line=ln) from None
-            if len(vals) != len(COVARIANCE_COLUMNS) or not np.all(np.isfinite(vals)):
-                raise DataError(path, f"expected {len(COVARIANCE_COLUMNS)} finite numbers", line=ln)
-            times.append(vals[0])
-            rows.append(vals[1:])
-    P = np.zeros((len(rows), 3, 3))
-    iu = np.triu_indices(3)
-    for k, r in enumerate(rows):
-        P[k][iu] = r
-        P[k] = P[k] + np.triu(P[k], 1).T
-    return np.asarray(times), P
+def bounds_from_result(loc, store) -> dict:
+    """The 95 % bounds of a :class:`scenesig.surveys.localisation.Localisation`: computed once from the pose
+    graph's marginals (kept in its per-frame table and ``planar_covariances``), else those its folder
+    recorded; NaN throughout where neither is known."""
+    if loc.planar_covariances is None:
+        n = len(loc.times)
+        if loc.covariances is None:
+            loc.planar_covariances = np.full((n, 3, 3), np.nan)
+        else:
+            planar = planar_covariances(loc.poses, loc.covariances)
+            loc.frames = {**loc.frames, **frame_bounds(loc.poses, planar, reference_path(store))}
+            loc.planar_covariances = planar
+    return loc.bounds

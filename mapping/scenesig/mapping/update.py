@@ -41,7 +41,6 @@ import json
 import os
 import shutil
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -62,10 +61,11 @@ from scenesig.signatures.bank import Bank
 from scenesig.surveys.errors import DataError
 from scenesig.surveys.geometry import invert, yaw_of
 from scenesig.surveys.io import atomic_write_bytes, atomic_write_text, fsync_dir
+from scenesig.surveys.localisation import Localisation
 from scenesig.surveys.run import SurveyRun, read_run
 from scenesig.surveys.settings import merge_settings
 
-__all__ = ["default_config", "Localisation", "find_run", "weakly_localised_places", "check_localisations", "update_map"]
+__all__ = ["default_config", "read_localisation", "find_run", "weakly_localised_places", "check_localisations", "update_map"]
 
 JOURNAL = "update.jsonl"
 SUMMARY = "update_summary.json"
@@ -104,23 +104,36 @@ default_config = {
 }
 
 
-@dataclass
-class Localisation:
-    """A ``scenesig localise`` output folder, read back (:func:`scenesig.localiser.outputs.read_localisation`):
-    its metrics, the localiser's estimated trajectory (one pose per frame), its ``frames.csv`` columns
-    (``place``, ``detections``, ``inliers``, ``localised``, ...), the live run, and a digest of the
-    machine-independent content (what makes two updates the same)."""
+def read_localisation(folder, search=()) -> Localisation:
+    """A ``scenesig localise`` output folder read back for an update (:meth:`Localisation.from_folder`) with its
+    live run (``run``): found by ``metrics.json``'s ``run_path``, else by its name beside it or in the
+    folders ``search``.  DataError naming the file if something is missing or inconsistent, or if the
+    localisation is not a scene-signature one (only that tells where the map's signatures were weak)."""
+    folder = Path(folder)
+    mpath = folder / "metrics.json"
+    loc = Localisation.from_folder(folder)
+    metrics = loc.metrics or {}
+    if loc.method != "signatures":
+        raise DataError(mpath, f"method is {loc.method!r}: only a scene-signature localisation tells "
+                               f"where the map's signatures were weak")
+    tpath = folder / "trajectory.tum"
+    # the run: where the localisation read it, else by name beside it or in ``search``
+    hint = Path(metrics["run_path"]) if metrics.get("run_path") else None
+    search = ([hint.parent] if hint is not None else []) + [Path(d) for d in search]
+    run = read_run(find_run(metrics["run"], [hint], search))
+    if run.name != metrics["run"]:
+        raise DataError(mpath, f"names run {metrics['run']!r} but {run.root} holds run {run.name!r}")
+    n = len(run.frame_times)
+    if len(loc.times) != n:
+        raise DataError(tpath, f"{len(loc.times)} poses for run {run.name!r} of {n} frames: not this run's "
+                               f"localisation")
+    if not np.allclose(loc.times, run.frame_times, atol=1e-5):
+        raise DataError(tpath, f"timestamps are not those of run {run.name!r}'s frames")
+    loc.run = run
+    return loc
 
-    folder: Path
-    metrics: dict
-    times: np.ndarray
-    poses: np.ndarray
-    frames: dict
-    run: SurveyRun
-    digest: str
 
-
-def find_run(name: str, hints: list[Path], search: list[Path]) -> Path:
+def find_run(name: str, hints: list[Path | None], search: list[Path]) -> Path:
     """The folder of the run called ``name``: a hint if it is that run, else a sub-folder of ``search``."""
     for h in hints:
         if h is not None and (h / "run.toml").is_file() and read_run(h, check_images=False).name == name:
@@ -471,8 +484,8 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
     Parameters
     ----------
     map_root : the map folder (updated in place unless ``out``).
-    localisations : list of :class:`Localisation` (``scenesig localise`` outputs read by
-        :func:`scenesig.localiser.outputs.read_localisation`; their runs must still exist).
+    localisations : list of :class:`scenesig.surveys.localisation.Localisation` (``scenesig localise`` outputs
+        read by :func:`read_localisation`; their runs must still exist).
     out : optional new map folder: the map is copied there first and updated there.
     runs_dirs : folders holding the map's training runs (default: the live runs' parent folders).
     config : overrides of :data:`default_config`.
@@ -492,7 +505,7 @@ def update_map(map_root, localisations, out=None, runs_dirs=(), config: dict | N
     root = Path(map_root)
     source = MapStore.open(root)  # a finished, valid map (DataError otherwise)
     locs = list(localisations)
-    inputs = _digest({"localisations": [loc.digest for loc in locs], "config": cfg})
+    inputs = _digest({"localisations": [loc.digest() for loc in locs], "config": cfg})
     applied = bool(source.history) and source.history[-1].get("inputs") == inputs
     check_localisations(source, locs, allow_older_generation, applied)
     if out is not None:
