@@ -16,7 +16,7 @@ silent on the right one, on worlds nobody tuned it on.  For each seed this bench
 ``--calibrate`` runs with the monitor's tests switched off, recording every detector frame's statistics
 (``integrity_stats.json`` beside each localisation) so thresholds can be chosen from them
 (:func:`scenesig.localiser.integrity` docs, ``docs/integrity.md``); ``--evaluate`` runs with the defaults.
-Everything is cached under ``--cache`` (default ``/work/cache/integrity``, outside the repository) per
+Everything is cached under ``--cache`` (default ``maps/bench_integrity``, never committed; several GB) per
 preset, camera rate and seed: simulated runs, maps, localisations; a rerun resumes where it stopped.
 
 JSON (stdout and ``--json``): ``worlds`` (per world: ``seed``, ``runs`` with ``kind``, ``condition``,
@@ -317,7 +317,8 @@ def main(argv=None) -> int:
                         "demo's 10 Hz --every 2 rate, at half the rendering)")
     p.add_argument("--every", type=int, default=1, help="localise every N-th frame (default 1)")
     p.add_argument("--jobs", type=int, default=1, help="worlds processed in parallel")
-    p.add_argument("--cache", default="/work/cache/integrity", help="where worlds, maps and localisations are kept")
+    p.add_argument("--cache", default="maps/bench_integrity",
+                   help="where worlds, maps and localisations are kept (default maps/bench_integrity; several GB)")
     p.add_argument("--prepare-only", action="store_true", help="simulate and build only")
     p.add_argument("--choose", action="store_true",
                    help="with --calibrate: choose the monitor's settings and the bound inflation from the recorded "
