@@ -6,8 +6,11 @@ random identity, which measure the machine, the folders and the build, not the r
 night and overcast runs of the tiny world (``tests/build_world.py``), recorded from the commit the file names
 (433dc8c: main with the integrity monitor's sequential test, the replay as it was *before* it became a driver
 over :class:`scenesig.localiser.session.Session`; first recorded from 325a86a, re-recorded when the integrity
-work changed the alerts on purpose, and again with the defaults re-chosen on twelve calibration worlds patched
-into 433dc8c's two constants -- ``INFLATION`` and the monitor's ``sprt_dispersion`` / ``cusum_h``).  The
+work changed the alerts on purpose, again with the defaults re-chosen on twelve calibration worlds patched
+into 433dc8c's two constants -- ``INFLATION`` and the monitor's ``sprt_dispersion`` / ``cusum_h`` -- and again
+when the monitor's evidence became the solver's inliers on every frame and its defaults were re-chosen: those
+four settings and the two lines that count a frame's fired signatures patched in; on the tiny world only
+``metrics.json`` changed, through the settings it records).  The
 recording is another implementation than the one tested, so a match says the refactor changed no byte.
 Digests hold on the machine that recorded them (the same libraries); elsewhere regenerate from the recording commit.
 

@@ -96,6 +96,24 @@ def test_a_place_counts_once_however_long_the_vehicle_stands_there():
     assert "alert" in [m.assess(_frame(rng, 8 + 0.2 * i, 4 + i, OTHER)) for i in range(6)]
 
 
+def test_a_frame_without_a_pose_counts_its_inliers_not_its_detections():
+    """Detections the solver's geometry rejected are no evidence for the map: a look-alike's windows fill with
+    chance responses (up to every signature searched) that no pose explains.  The rates in firing.json count
+    the solver's inliers on every frame; the monitor counts the same."""
+    rates = {p: (OWN, OTHER) for p in range(10)}
+    m = IntegrityMonitor(DESIGN, firing=rates)
+    # every signature searched responded, 2 survived the solver's gates, and it rejected the pose
+    rejected = FrameStats(0.0, 3, SEARCHED, 2, SEARCHED, False, np.nan, 1.0, np.nan, np.nan)
+    assert m.frame_llr(rejected) < 0
+    assert m.frame_llr(rejected) == pytest.approx(
+        m.frame_llr(FrameStats(0.0, 3, 2, 2, SEARCHED, True, np.nan, 1.0, np.nan, np.nan)))
+    # a probation fed such frames at one place after another is refused, never accepted
+    m.begin_probation(0.0)
+    verdicts = [m.assess(FrameStats(0.2 * i, 3 + i, SEARCHED, 2, SEARCHED, False, np.nan, 1.0, np.nan, np.nan))
+                for i in range(8)]
+    assert "accept" not in verdicts and "alert" in verdicts
+
+
 def test_without_firing_rates_the_thresholds_decide():
     m = IntegrityMonitor(DESIGN, firing=None)
     assert m.rates is None and m.frame_llr(FrameStats(0, 1, 5, 5, 40, True, 1, 4, 1, 0.1)) == 0.0

@@ -72,17 +72,17 @@ default_config = {
     "sprt": True,
     "sprt_alpha": 0.01,            # designed P(a fix on a map that does not explain the run is accepted)
     "sprt_beta": 0.01,             # designed P(a right map's fix is refused in probation)
-    "sprt_other_factor": 3.0,      # H0's rate: this x other (a tracked false fix draws its windows onto
+    "sprt_other_factor": 2.0,      # H0's rate: this x other (a tracked false fix draws its windows onto
                                    # chance firings, which a fixed prior at build time does not)
     "sprt_own_fraction": 0.8,      # H1's rate: H0's + this x (own - H0's) (unseen conditions fire less)
-    "sprt_dispersion": 2.0,        # the log-likelihood ratio is divided by this (signatures fire together)
-    "cusum_h": 8.0,                # tracking alert when Page's CUSUM of -LLR reaches this (ARL >= e^h places)
+    "sprt_dispersion": 4.0,        # the log-likelihood ratio is divided by this (signatures fire together)
+    "cusum_h": 32.0,               # tracking alert when Page's CUSUM of -LLR reaches this (ARL >= e^h places)
     # with the sequential test, the backstop tests and the probation's minimum chosen with it (on the
     # calibration worlds, docs/integrity.md "Calibrated on many worlds"); the keys below without "sprt_"
     # apply to maps without firing rates
     "sprt_max_residual": 12.7,
     "sprt_max_nis": 31.0,
-    "sprt_probation_frames": 12,
+    "sprt_probation_frames": 6,
     "sprt_probation_places": 3,
     "probation_max_frames": 30,    # a probation the test has not decided by then ends with an alert
     # Maps without firing rates (built before them): every threshold below was chosen on development runs
@@ -249,8 +249,7 @@ class IntegrityMonitor:
         """log P(frame | the map explains it) / P(frame | it does not): the frame's ``inliers`` of ``searched``
         signatures as Bernoulli draws at the place's rates (H0: ``κ other``, H1: ``κ other + γ (own - κ
         other)``), divided by the dispersion φ.  0 where the place has no rates or nothing was searched."""
-        fired = f.inliers if f.solved else f.detections
-        return self._llr_of(f.place, float(fired), float(f.searched))
+        return self._llr_of(f.place, float(f.inliers), float(f.searched))
 
     def _llr_of(self, place: int, k: float, n: float) -> float:
         if self.rates is None or n <= 0 or place not in self.rates:
@@ -266,8 +265,10 @@ class IntegrityMonitor:
         """Add a frame to the evidence.  The Bernoulli draws are the place's signatures, not the frames: a
         vehicle standing at a crossing sees the same image for seconds, and successive frames of one place
         run the same classifiers on nearly the same view.  So each place counts once, with the mean share of
-        its signatures that fired over the frames seen there (a frame the solver did not run on -- too few
-        detections for eq. 10 -- counts its detections, the signatures that fired in their windows)."""
+        its signatures that fired over the frames seen there.  "Fired" is the solver's inliers, also on a frame
+        whose pose the solver rejected (and none on a frame with too few detections for eq. 10): detections the
+        geometry did not confirm are not evidence for the map -- a tracked false fix's windows fill with
+        chance responses (up to all of the signatures searched) that no pose explains."""
         if f.searched <= 0:
             return
         if f.place != self._ev_place:
@@ -275,7 +276,7 @@ class IntegrityMonitor:
             self._llr_committed += place_llr
             self._cusum_committed = max(0.0, self._cusum_committed - place_llr)
             self._ev_place, self._ev_k, self._ev_n, self._ev_frames = f.place, 0.0, 0.0, 0
-        self._ev_k += float(f.inliers if f.solved else f.detections)
+        self._ev_k += float(f.inliers)
         self._ev_n += float(f.searched)
         self._ev_frames += 1
 
@@ -345,7 +346,7 @@ class IntegrityMonitor:
             self._probation.append(stats)
             solved = [f for f in self._probation if f.solved]
             misses = len(self._probation) - len(solved)
-            # with firing rates, frames without a pose are evidence for the sequential test (their detections)
+            # with firing rates, frames without a pose are evidence for the sequential test (few or no inliers)
             if misses > cfg["probation_misses"] and self.rates is None:
                 self.probations["refused"] += 1
                 return self._alert(stats, [f"{misses} of {len(self._probation)} tracked frames found no pose"],
