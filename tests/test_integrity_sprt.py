@@ -165,6 +165,29 @@ def test_bench_seeds_and_summary():
     assert s["right_runs_with_alert_rate"] == 0.5 and s["right_runs_coverage_ok_rate"] == 0.5
 
 
+def test_bench_does_not_reuse_a_wrong_run_cached_from_another_world(tmp_path):
+    """The partner world follows the seed list: a wrong-map copy (and its localisations) cached from another
+    world's run is replaced, a copy of the same run is kept."""
+    from scenesig.benchmarks.integrity import wrong_copy
+
+    def run(name):
+        d = tmp_path / name
+        (d / "images").mkdir(parents=True)
+        (d / "odometry.csv").write_text(name)
+        (d / "run.toml").write_text(f'name = "{name}"\nconditions = ["night"]\n[metadata]\nseed = 1\n')
+        return d
+
+    a, b, world = run("a"), run("b"), tmp_path / "world"
+    dst = wrong_copy(world, a, "drive1")
+    assert (dst / "odometry.csv").read_text() == "a" and "metadata" not in (dst / "run.toml").read_text()
+    cached = world / "loc-calibrate" / "drive1"
+    cached.mkdir(parents=True)
+    (cached / "row.json").write_text("{}")
+    assert wrong_copy(world, a, "drive1") == dst and cached.exists()      # same source: the cache stands
+    wrong_copy(world, b, "drive1")
+    assert (dst / "odometry.csv").read_text() == "b" and not cached.exists()
+
+
 def test_choose_meets_the_targets_on_synthetic_streams():
     from scenesig.benchmarks.integrity import choose
 

@@ -32,6 +32,7 @@ import argparse
 import itertools
 import json
 import os
+import shutil
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -145,6 +146,26 @@ def stripped_copy(src: Path, dst: Path, name: str) -> Path:
     return dst
 
 
+def wrong_copy(world: Path, src: Path, alias: str) -> Path:
+    """``world``'s wrong-map run ``alias``: a stripped copy of ``src`` (another world's run).  A copy cached
+    from another run (the seed list changed, and with it the partner world) is removed with the
+    localisations made of it, so a cached row never stands for another world's run."""
+    dst = world / "wrong" / alias
+    if dst.exists() and _linked_from(dst) != src.resolve():
+        shutil.rmtree(dst)
+        for stale in world.glob(f"loc-*/{alias}"):
+            shutil.rmtree(stale)
+    return stripped_copy(src, dst, alias)
+
+
+def _linked_from(dst: Path) -> Path | None:
+    """The run folder a stripped copy's linked files come from (None if nothing in ``dst`` is a link)."""
+    for f in sorted(dst.iterdir()):
+        if f.is_symlink():
+            return f.resolve().parent
+    return None
+
+
 def _median(values) -> float | None:
     v = np.asarray([x for x in values if x is not None and np.isfinite(x)], float)
     return float(np.median(v)) if v.size else None
@@ -223,7 +244,7 @@ def localise_world(layout: Layout, seed: int, partner: int, mode: str, every: in
         rows.append(localise_one(layout, seed, layout.runs(seed) / name, "right", cond, mode, every))
     for index, alias in WRONG:
         src = layout.runs(partner) / names[index]
-        dst = stripped_copy(src, layout.world(seed) / "wrong" / alias, alias)
+        dst = wrong_copy(layout.world(seed), src, alias)
         rows.append(localise_one(layout, seed, dst, "wrong", (TRAINING + LIVE)[index], mode, every))
     return {"seed": seed, "wrong_runs_from_seed": partner, "runs": rows}
 
