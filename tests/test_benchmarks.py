@@ -339,10 +339,16 @@ def test_integrity(tmp_path, capsys, tiny_world):
         shutil.copytree(base_map, layout.map(seed))
     assert len(layout.run_names()) == len(TRAINING) + len(LIVE)
     doc = _run("integrity", ["--seeds", "1-2", "--evaluate", "--preset", "tiny", "--camera-hz", "4", "--cache",
-                             tmp_path / "cache", "--json", tmp_path / "i.json"], capsys, tmp_path / "i.json")
+                             tmp_path / "cache", "--camera-check", "--json", tmp_path / "i.json"], capsys,
+               tmp_path / "i.json")
     assert [w["seed"] for w in doc["worlds"]] == [1, 2] and len(doc["worlds"][0]["runs"]) == 7
     assert {"wrong_runs_zero_accepted_rate", "wrong_run_max_accepted", "right_runs_with_alert_rate",
             "right_runs_coverage_ok_rate"} <= set(doc["summary"])
+    # the camera check on each live run as calibrated, halved and doubled (5 runs x 3 scales x 2 worlds)
+    cam = doc["camera_check"]
+    assert len(cam["runs"]) == 30 and sum(cam["verdicts"]["correct"][k] for k in
+                                          ("refused", "warned", "passed", "no_verdict")) == 10
+    assert cam["verdicts"]["correct"]["refused"] == 0 and cam["verdicts"]["miscalibrated"]["refused"] > 0
 
 
 def test_every_benchmark_has_a_smoke_test():

@@ -188,6 +188,21 @@ def test_bench_does_not_reuse_a_wrong_run_cached_from_another_world(tmp_path):
     assert (dst / "odometry.csv").read_text() == "b" and not cached.exists()
 
 
+def test_bench_chooses_the_camera_checks_inlier_minimum():
+    """A correct run whose poorly supported turns (20 inliers) agree on a wrong ratio is refused until the
+    minimum excludes them; the miscalibrated run, well supported, is refused throughout."""
+    from scenesig.benchmarks.integrity import camera_verdicts, choose_min_inliers
+
+    rows = [{"seed": 1, "run": "fog", "focal_scale": 1.0, "turns": [[1.0, 40]] * 5 + [[1.5, 20]] * 20},
+            {"seed": 1, "run": "fog", "focal_scale": 0.5, "turns": [[2.0, 60]] * 8}]
+    v15 = camera_verdicts(rows, 15)
+    assert v15["correct"]["refused"] == 1 and v15["correct_refused_runs"] == ["1/fog"]
+    v25 = camera_verdicts(rows, 25)
+    assert v25["correct"]["passed"] == 1 and v25["miscalibrated"]["refused"] == 1
+    assert camera_verdicts(rows, 50)["correct"]["no_verdict"] == 1      # too few turns left to judge
+    assert choose_min_inliers(rows) == 25
+
+
 def test_choose_meets_the_targets_on_synthetic_streams():
     from scenesig.benchmarks.integrity import choose
 

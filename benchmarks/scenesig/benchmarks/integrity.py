@@ -25,6 +25,12 @@ JSON (stdout and ``--json``): ``worlds`` (per world: ``seed``, ``runs`` with ``k
 (``wrong_runs_zero_accepted_rate``, ``wrong_run_max_accepted``, ``right_runs_with_alert_rate``,
 ``right_runs_coverage_ok_rate``).  On a wrong-world run every accepted localisation is a false fix (the
 map is of another place), so ``false_fixes`` equals ``localisations`` there.
+
+``--camera-check`` also measures the camera check (:mod:`scenesig.mapping.camera_check`) on every live run
+with its focal lengths as given (a correct calibration), halved and doubled (miscalibrations) and judges
+the turns over a grid of ``min_inliers``: ``camera_check`` holds ``verdicts`` (with the default: refused,
+warned, passed, no verdict, for correct and miscalibrated runs), ``by_min_inliers`` and every run's turns;
+with ``--calibrate --choose``, ``choice.camera_min_inliers`` is the smallest value refusing no correct run.
 """
 from __future__ import annotations
 
@@ -172,14 +178,17 @@ def _median(values) -> float | None:
 
 
 def _defaults_key() -> str:
-    """``-`` and a digest of the monitor's defaults and the bound inflation: an evaluation cached under other
-    defaults is not reused once they change (calibration runs with the tests off do not depend on them)."""
+    """``-`` and a digest of the monitor's and the camera check's defaults and the bound inflation: an
+    evaluation cached under other defaults is not reused once they change (calibration runs with the tests
+    off do not depend on the monitor's)."""
     import hashlib
 
     from scenesig.localiser.integrity import default_config
     from scenesig.localiser.uncertainty import INFLATION
+    from scenesig.mapping.camera_check import default_config as camera_config
 
-    text = json.dumps({"integrity": default_config, "inflation": INFLATION}, sort_keys=True, default=str)
+    text = json.dumps({"integrity": default_config, "inflation": INFLATION, "camera_check": camera_config},
+                      sort_keys=True, default=str)
     return "-" + hashlib.sha256(text.encode()).hexdigest()[:10]
 
 
@@ -285,6 +294,60 @@ def summarise(worlds: list[dict]) -> dict:
     }
 
 
+#: the run's own focal lengths (a correct calibration), halved and doubled (miscalibrations)
+FOCAL_SCALES = (1.0, 0.5, 2.0)
+#: the camera check's ``min_inliers`` values ``--camera-check`` judges the turns with
+MIN_INLIERS_GRID = (15, 20, 25, 30, 35, 40, 45, 50)
+
+
+def camera_turns(layout: Layout, seed: int) -> list[dict]:
+    """Every live run's turns (:func:`scenesig.mapping.camera_check.turns`) measured through its own camera
+    and through focal lengths halved and doubled: one row per run and scale."""
+    import dataclasses
+
+    from scenesig.mapping.camera_check import turns
+    from scenesig.surveys.run import read_run
+
+    rows = []
+    for name, cond in zip(layout.run_names()[len(TRAINING):], LIVE):
+        run = read_run(layout.runs(seed) / name, check_images=False)
+        for k in FOCAL_SCALES:
+            cam = dataclasses.replace(run.camera, fx=run.camera.fx * k, fy=run.camera.fy * k)
+            rows.append({"seed": seed, "run": name, "condition": cond, "focal_scale": k,
+                         "turns": [[r, n] for r, n in turns(dataclasses.replace(run, camera=cam))]})
+    return rows
+
+
+def camera_verdicts(rows: list[dict], min_inliers: int) -> dict:
+    """The camera check's verdicts on ``rows`` with ``min_inliers``: for the correct calibrations and the
+    miscalibrated ones, how many were refused, warned about, passed, or left without a verdict."""
+    from scenesig.mapping.camera_check import calibration_finding
+
+    out = {kind: {"refused": 0, "warned": 0, "passed": 0, "no_verdict": 0} for kind in ("correct", "miscalibrated")}
+    refused_correct = []
+    for r in rows:
+        finding, ratio, _ = calibration_finding([tuple(t) for t in r["turns"]], {"min_inliers": min_inliers})
+        verdict = ("no_verdict" if ratio is None else "passed" if finding is None
+                   else "refused" if finding.severity == "error" else "warned")
+        kind = "correct" if r["focal_scale"] == 1.0 else "miscalibrated"
+        out[kind][verdict] += 1
+        if kind == "correct" and verdict == "refused":
+            refused_correct.append(f'{r["seed"]}/{r["run"]}')
+    out["correct_refused_runs"] = refused_correct
+    return out
+
+
+def choose_min_inliers(rows: list[dict]) -> int | None:
+    """The smallest ``min_inliers`` of the grid with which no correctly calibrated run is refused (None if
+    every value refuses one)."""
+    return next((m for m in MIN_INLIERS_GRID if camera_verdicts(rows, m)["correct"]["refused"] == 0), None)
+
+
+def _camera_job(args):
+    layout, seed = args
+    return camera_turns(layout, seed)
+
+
 def _prepare_job(args):
     layout, seed = args
     try:
@@ -299,8 +362,9 @@ def _localise_job(args):
 
 
 def run_bench(seeds: list[int], mode: str, cache, preset: str = "compact", camera_hz: float = 5.0, every: int = 1,
-              jobs: int = 1, prepare_only: bool = False) -> dict:
-    """Simulate, build and localise every seed's world (resuming from ``cache``); the JSON's content."""
+              jobs: int = 1, prepare_only: bool = False, camera_check: bool = False) -> dict:
+    """Simulate, build and localise every seed's world (resuming from ``cache``); with ``camera_check`` also
+    judge every live run's calibration check (its own focal lengths, halved, doubled); the JSON's content."""
     layout = Layout(cache, preset, camera_hz)
     t0 = time.perf_counter()
     pool = ProcessPoolExecutor(max_workers=jobs) if jobs > 1 else None
@@ -312,6 +376,8 @@ def run_bench(seeds: list[int], mode: str, cache, preset: str = "compact", camer
         partners = {s: ok[(i + 1) % len(ok)] for i, s in enumerate(ok)}
         worlds = [] if prepare_only or len(ok) < 2 else list(
             mapper(_localise_job, [(layout, s, partners[s], mode, every) for s in ok]))
+        turn_rows = ([r for rows in mapper(_camera_job, [(layout, s) for s in ok]) for r in rows]
+                     if camera_check else None)
     finally:
         if pool:
             pool.shutdown()
@@ -321,7 +387,16 @@ def run_bench(seeds: list[int], mode: str, cache, preset: str = "compact", camer
             "prepare_seconds": {str(k): round(v, 1) for k, v in prepared.items() if k not in failed},
             "failed_worlds": {str(k): v for k, v in failed.items()},
             "seconds": round(time.perf_counter() - t0, 1), "worlds": worlds,
-            "summary": summarise(worlds) if worlds else None}
+            "summary": summarise(worlds) if worlds else None,
+            **({"camera_check": _camera_section(turn_rows)} if turn_rows is not None else {})}
+
+
+def _camera_section(rows: list[dict]) -> dict:
+    from scenesig.mapping.camera_check import default_config
+
+    return {"focal_scales": list(FOCAL_SCALES), "default_min_inliers": default_config["min_inliers"],
+            "verdicts": camera_verdicts(rows, default_config["min_inliers"]),
+            "by_min_inliers": {str(m): camera_verdicts(rows, m) for m in MIN_INLIERS_GRID}, "runs": rows}
 
 
 def main(argv=None) -> int:
@@ -344,6 +419,10 @@ def main(argv=None) -> int:
     p.add_argument("--choose", action="store_true",
                    help="with --calibrate: choose the monitor's settings and the bound inflation from the recorded "
                         "statistics (the design error rates: --alpha, --beta)")
+    p.add_argument("--camera-check", action="store_true",
+                   help="also measure the camera check on every live run with its focal lengths as given, halved "
+                        "and doubled, and judge it over a grid of min_inliers (with --calibrate --choose: choose "
+                        "min_inliers)")
     p.add_argument("--alpha", type=float, default=0.01, help="designed P(wrong map's fix accepted) per probation")
     p.add_argument("--beta", type=float, default=0.01, help="designed P(right map's fix refused) per probation")
     p.add_argument("--json", default=None, help="also write the JSON here")
@@ -357,12 +436,15 @@ def main(argv=None) -> int:
     if a.choose and not a.calibrate:
         p.error("--choose needs --calibrate")
     result = run_bench(seeds, "calibrate" if a.calibrate else "evaluate", a.cache, a.preset, a.camera_hz, a.every,
-                       a.jobs, a.prepare_only)
+                       a.jobs, a.prepare_only, a.camera_check)
     if a.choose and result["worlds"]:
         layout = Layout(a.cache, a.preset, a.camera_hz)
         done = [w["seed"] for w in result["worlds"]]
         result["choice"] = choose(recorded_streams(layout, done), a.alpha, a.beta)
         result["choice"]["inflation"] = inflation(layout, done)
+    if a.choose and "camera_check" in result:
+        # the camera check's turn minimum: no correctly calibrated calibration run refused
+        result.setdefault("choice", {})["camera_min_inliers"] = choose_min_inliers(result["camera_check"]["runs"])
     emit_json(result, a.json)
     return 0
 
