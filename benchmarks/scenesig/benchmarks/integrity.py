@@ -177,19 +177,26 @@ def _median(values) -> float | None:
     return float(np.median(v)) if v.size else None
 
 
-def _defaults_key() -> str:
-    """``-`` and a digest of the monitor's and the camera check's defaults and the bound inflation: an
-    evaluation cached under other defaults is not reused once they change (calibration runs with the tests
-    off do not depend on the monitor's)."""
+def _defaults_key(mode: str) -> str:
+    """``-`` and a digest of the defaults a ``mode``'s localisations depend on: the camera check's (it may
+    refuse a run before replaying) and, for an evaluation, the monitor's and the bound inflation
+    (calibration runs with the monitor's tests off).  A localisation cached under other defaults is not
+    reused once they change."""
     import hashlib
 
     from scenesig.localiser.integrity import default_config
     from scenesig.localiser.uncertainty import INFLATION
     from scenesig.mapping.camera_check import default_config as camera_config
 
-    text = json.dumps({"integrity": default_config, "inflation": INFLATION, "camera_check": camera_config},
-                      sort_keys=True, default=str)
-    return "-" + hashlib.sha256(text.encode()).hexdigest()[:10]
+    used: dict = {"camera_check": camera_config}
+    if mode == "evaluate":
+        used.update({"integrity": default_config, "inflation": INFLATION})
+    return "-" + hashlib.sha256(json.dumps(used, sort_keys=True, default=str).encode()).hexdigest()[:10]
+
+
+def calibration_folder(layout: Layout, seed: int) -> Path:
+    """Where ``--calibrate`` keeps a world's localisations and their recorded statistics."""
+    return layout.world(seed) / f"loc-calibrate{_defaults_key('calibrate')}"
 
 
 def localise_one(layout: Layout, seed: int, run: Path, kind: str, condition: str, mode: str, every: int) -> dict:
@@ -199,7 +206,7 @@ def localise_one(layout: Layout, seed: int, run: Path, kind: str, condition: str
     from scenesig.api import localise
     from scenesig.surveys.io import atomic_write_text
 
-    out = layout.world(seed) / f"loc-{mode}{_defaults_key() if mode == 'evaluate' else ''}" / run.name
+    out = layout.world(seed) / f"loc-{mode}{_defaults_key(mode)}" / run.name
     row_path = out / "row.json"
     if row_path.exists():
         return json.loads(row_path.read_text())
@@ -462,7 +469,7 @@ def recorded_streams(layout: Layout, seeds) -> list[dict]:
 
     out = []
     for seed in seeds:
-        folder = layout.world(seed) / "loc-calibrate"
+        folder = calibration_folder(layout, seed)
         if not folder.is_dir():
             continue
         rates = firing.load(MapStore.open(layout.map(seed)))
@@ -645,7 +652,7 @@ def inflation(layout: Layout, seeds, target: float = COVERAGE_OK, share: float =
 
     need = {}
     for seed in seeds:
-        folder = layout.world(seed) / "loc-calibrate"
+        folder = calibration_folder(layout, seed)
         for run_dir in sorted(folder.glob("run*")):
             if not (run_dir / "metrics.json").exists():
                 continue

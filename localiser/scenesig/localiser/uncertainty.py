@@ -47,9 +47,9 @@ __all__ = ["Z_95", "INFLATION", "BOUND_COLUMNS", "COVARIANCE_COLUMNS", "planar_c
 #: two-sided 95 % quantile of a normal distribution
 Z_95 = 1.959963984540054
 #: the inflation of the marginal's standard deviations (see the module docstring, "Calibration"): the raw
-#: marginal is overconfident.  8.25 is the smallest factor (0.05 steps) with which at least 95 % of the 119
+#: marginal is overconfident.  8.25 is the smallest factor (0.05 steps) with which at least 95 % of the 120
 #: right-map runs of 24 calibration worlds (``scenesig bench integrity --seeds 1000-1023 --calibrate
-#: --choose``; never reported) have bound_coverage_95 >= 0.9 (median need 3.5; the first 12 worlds alone
+#: --choose``; never reported) have bound_coverage_95 >= 0.9 (median need 3.45; the first 12 worlds alone
 #: gave 8.25 too; before, 5.2 from four demo runs)
 INFLATION = 8.25
 
