@@ -15,7 +15,7 @@ Subscribes
 Publishes
     ``nav_msgs/Odometry`` in ``map`` (child ``base_link``) at every processed image once the session has a
     world pose -- the estimate at the image's time, as ``scenesig localise`` writes it per frame -- with
-    its covariance (x, y, z, roll, pitch, yaw in the map frame: the session's vehicle-frame marginal
+    its covariance (x, y, z, roll, pitch, yaw in the map frame: the session's vehicle-frame covariance
     rotated into it); the ``map -> odom`` transform on ``/tf`` (AMCL's convention: ``T_map_odom =
     T_map_base(t) · T_odom_base(t)⁻¹``, re-sent with every odometry message so that it stays fresh); and a
     ``diagnostic_msgs/DiagnosticArray`` whose status carries the session's state (``tracking`` OK;

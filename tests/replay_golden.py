@@ -10,7 +10,9 @@ work changed the alerts on purpose, again with the defaults re-chosen on twelve 
 into 433dc8c's two constants -- ``INFLATION`` and the monitor's ``sprt_dispersion`` / ``cusum_h`` -- and again
 when the monitor's evidence became the solver's inliers on every frame and its defaults were re-chosen: those
 four settings and the two lines that count a frame's fired signatures patched in; on the tiny world only
-``metrics.json`` changed, through the settings it records).  The
+``metrics.json`` changed, through the settings it records; and again when the stated covariance gained the
+innovation term, with ``INFLATION`` 2.15 and the term -- the localiser's innovation record and the two lines
+adding it to the covariance -- patched in: bounds and covariances changed, trajectories did not).  The
 recording is another implementation than the one tested, so a match says the refactor changed no byte.
 Digests hold on the machine that recorded them (the same libraries); elsewhere regenerate from the recording commit.
 

@@ -319,10 +319,9 @@ def test_aerial(tmp_path, capsys):
                     "--json", tmp_path / "a.json"], capsys, tmp_path / "a.json")
 
 
-def test_integrity(tmp_path, capsys, tiny_world):
+def _integrity_layout(tmp_path, tiny_world):
     """Two 'worlds' laid out in the bench's cache from the tiny world (its three runs under the bench's run
-    names, a copy of its map with firing rates): the evaluate path end to end, without simulating (the
-    full path, simulation and build included: tests/test_integrity_sprt.py, heavy)."""
+    names, a copy of its map with firing rates), without simulating."""
     from scenesig.benchmarks.integrity import LIVE, TRAINING, Layout
     from scenesig.localiser import firing
 
@@ -338,6 +337,13 @@ def test_integrity(tmp_path, capsys, tiny_world):
             (layout.runs(seed) / name).symlink_to(runs[i % len(runs)].root)
         shutil.copytree(base_map, layout.map(seed))
     assert len(layout.run_names()) == len(TRAINING) + len(LIVE)
+    return layout
+
+
+def test_integrity(tmp_path, capsys, tiny_world):
+    """The evaluate path end to end on two 'worlds' made of the tiny world (the full path, simulation and
+    build included: tests/test_integrity_sprt.py, heavy)."""
+    _integrity_layout(tmp_path, tiny_world)
     doc = _run("integrity", ["--seeds", "1-2", "--evaluate", "--preset", "tiny", "--camera-hz", "4", "--cache",
                              tmp_path / "cache", "--camera-check", "--json", tmp_path / "i.json"], capsys,
                tmp_path / "i.json")
@@ -349,6 +355,21 @@ def test_integrity(tmp_path, capsys, tiny_world):
     assert len(cam["runs"]) == 30 and sum(cam["verdicts"]["correct"][k] for k in
                                           ("refused", "warned", "passed", "no_verdict")) == 10
     assert cam["verdicts"]["correct"]["refused"] == 0 and cam["verdicts"]["miscalibrated"]["refused"] > 0
+
+
+@pytest.mark.heavy
+def test_integrity_calibrate(tmp_path, capsys, tiny_world):
+    """The calibrate path on the same two 'worlds': the tests off, every frame's statistics recorded, the
+    monitor's settings and the bound model chosen (~1 min)."""
+    _integrity_layout(tmp_path, tiny_world)
+    doc = _run("integrity", ["--seeds", "1-2", "--calibrate", "--choose", "--preset", "tiny", "--camera-hz", "4",
+                             "--cache", tmp_path / "cache", "--json", tmp_path / "c.json"], capsys, tmp_path / "c.json")
+    assert {"sprt_other_factor", "cusum_h"} <= set(doc["choice"]["chosen"])
+    assert all((w / "integrity_stats.json").exists()
+               for w in (tmp_path / "cache" / "tiny-4hz" / "seed1").glob("loc-calibrate*/run*"))
+    # the tiny map localises nothing without INS/GPS: no bound model is made up from no data (the rule on
+    # synthetic runs: tests/test_integrity_sprt.py)
+    assert doc["choice"]["inflation"] == {"k": None, "grid": []}
 
 
 def test_every_benchmark_has_a_smoke_test():

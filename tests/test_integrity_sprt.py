@@ -224,6 +224,52 @@ def test_choose_meets_the_targets_on_synthetic_streams():
     assert out["probations"]["missed_detection_rate"] == 0.0 and out["probations"]["false_alarm_rate"] <= 0.05
 
 
+def test_choose_without_tracking_windows_keeps_the_backstops():
+    """Right-map streams too short for a single tracking window (nothing tracked 4 frames): the backstops
+    have no data and keep their defaults instead of failing."""
+    from scenesig.benchmarks.integrity import choose
+    from scenesig.localiser.integrity import default_config
+
+    short = [FrameStats(0.2 * i, 0, 10, 10, SEARCHED, True, 10.0, 14.0, 3.0, 0.1) for i in range(2)]
+    out = choose([{"kind": kind, "stats": short, "rates": {0: (OWN, OTHER)}} for kind in ("right", "wrong")],
+                 alpha=0.01, beta=0.01)
+    assert out["chosen"]["sprt_max_residual"] == default_config["sprt_max_residual"]
+    assert out["chosen"]["sprt_max_nis"] == default_config["sprt_max_nis"] and out["right_windows"] == 0
+
+
+def test_bound_model_uses_the_innovations_when_they_explain_the_errors():
+    """Synthetic runs whose errors are the marginal's noise, but in a third of them a stretch where the
+    errors (and the fixes' innovations) are a metre: the marginal alone needs a large inflation on every
+    run to cover those; the innovation term covers them where they are, so the chosen model has a factor
+    above 0, a smaller median bound, covers its share of the runs it was chosen on and holds out on
+    random halves of the worlds."""
+    from scenesig.benchmarks.integrity import _mean_last, choose_bound_model
+
+    rng = np.random.default_rng(5)
+    runs = []
+    for i in range(40):
+        n = 200
+        sigma = np.full(n, 0.2)                           # Z·σ of the marginal: errors of σ ≈ 0.1 m
+        scale = np.full(n, 0.1)
+        innovations = np.abs(rng.normal(0.0, 0.15, n))
+        if i % 3 == 0:                                    # a stretch of metre errors that the fixes show
+            scale[:60] = 1.0
+            innovations[:60] = np.abs(rng.normal(1.0, 0.2, 60))
+        err = np.abs(rng.normal(0.0, scale))
+        runs.append({"seed": i // 5, "run": f"r{i}", "err": err, "sigma": sigma,
+                     "innovations": innovations, "upto": np.arange(1, n + 1)})
+    out = choose_bound_model(runs, halvings=50)
+    grid = {(g["window"], g["factor"], g["share"]): g for g in out["grid"]}
+    plain = grid[(5, 0.0, out["share"])]                  # the marginal alone, covering the same share
+    assert out["factor"] > 0 and out["held_out_p10"] >= 0.95 and out["admissible"] > 0
+    assert out["covered_rate"] >= out["share"] and out["median_bound_m"] < 0.8 * plain["median_bound_m"]
+    # a share met exactly on the calibration runs holds out less often than a larger one
+    same = [grid[(out["window"], out["factor"], share)] for share in (0.95, 0.99)]
+    assert same[0]["held_out_mean"] <= same[1]["held_out_mean"]
+    # the window mean is the localiser's: the last ``window`` innovations up to each frame
+    assert _mean_last(np.array([1.0, np.nan, 3.0, 5.0]), np.array([0, 1, 3, 4]), 2).tolist() == [0.0, 1.0, 3.0, 4.0]
+
+
 @pytest.mark.heavy
 def test_bench_runs_end_to_end_on_the_tiny_preset(tmp_path):
     """Two tiny worlds: simulated, built (with firing rates), localised right and wrong; the JSON's shape."""

@@ -185,12 +185,14 @@ def _defaults_key(mode: str) -> str:
     import hashlib
 
     from scenesig.localiser.integrity import default_config
-    from scenesig.localiser.uncertainty import INFLATION
+    from scenesig.localiser.uncertainty import INFLATION, INNOVATION_FACTOR, INNOVATION_WINDOW
     from scenesig.mapping.camera_check import default_config as camera_config
 
     used: dict = {"camera_check": camera_config}
     if mode == "evaluate":
         used.update({"integrity": default_config, "inflation": INFLATION})
+        if INNOVATION_FACTOR:     # (keys of localisations made before the innovation term stay valid)
+            used["innovation"] = [INNOVATION_WINDOW, INNOVATION_FACTOR]
     return "-" + hashlib.sha256(json.dumps(used, sort_keys=True, default=str).encode()).hexdigest()[:10]
 
 
@@ -589,8 +591,12 @@ def _choose(streams: list[dict], alpha: float, beta: float) -> dict:
     wrong = [s for s in streams if s["kind"] == "wrong"]
     n = int(default_config["window"])
     win = np.concatenate([_windows(s["stats"], n) for s in right]) if right else np.zeros((0, 2))
-    chosen = {"sprt_max_residual": _ceil(1.1 * np.nanmax(win[:, 0]), 0.1),
-              "sprt_max_nis": _ceil(1.1 * np.nanmax(win[:, 1]), 1.0)}
+    # (without a single tracking window on the right maps -- nothing tracked 4 frames -- the backstops
+    # have no data and keep their defaults)
+    has = np.isfinite(win).any(axis=0) if len(win) else np.zeros(2, bool)
+    chosen = {"sprt_max_residual": _ceil(1.1 * np.nanmax(win[:, 0]), 0.1) if has[0] else
+              float(default_config["sprt_max_residual"]),
+              "sprt_max_nis": _ceil(1.1 * np.nanmax(win[:, 1]), 1.0) if has[1] else float(default_config["sprt_max_nis"])}
     base = {**chosen, "sprt_alpha": alpha, "sprt_beta": beta}
     grid = []
     for kappa, gamma, phi, h, frames, places in itertools.product(
@@ -644,25 +650,128 @@ def _probation_length(stats, rates, config) -> float:
     return float(np.mean(lengths)) if lengths else np.nan
 
 
-def inflation(layout: Layout, seeds, target: float = COVERAGE_OK, share: float = 0.95) -> dict:
-    """The bound inflation ``k``: the smallest multiple of 0.05 with which at least ``share`` of the
-    calibration right-map runs have ``bound_coverage_95`` >= ``target`` (each run's needed factor is the
-    ``target`` quantile of |error| / raw bound over its localised frames)."""
-    from scenesig.benchmarks.uncertainty import _errors, _raw
+#: the bound model's grid (``choose_bound_model``): innovation windows (localisations), factors, and the
+#: shares of the calibration runs the inflation must cover
+INNOVATION_WINDOWS = (5, 10, 20, 40)
+INNOVATION_FACTORS = (0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.5, 0.8)
+COVERED_SHARES = (0.95, 0.975, 0.99)
 
-    need = {}
+
+def bound_frames(layout: Layout, seeds) -> list[dict]:
+    """Per calibration right-map run, over its localised frames: ``err`` (lateral, relative to the map) and
+    ``sigma`` (the marginal's own lateral 95 % bound: the recorded bound without the inflation and the
+    innovation term it was written with); ``innovations``, the planar innovations of its solved detector
+    frames (``integrity_stats.json``) and ``upto``, how many of them came at or before each frame."""
+    from scenesig.benchmarks.uncertainty import _errors
+    from scenesig.localiser.uncertainty import Z_95
+    from scenesig.surveys.localisation import Localisation
+
+    runs = []
     for seed in seeds:
-        folder = calibration_folder(layout, seed)
-        for run_dir in sorted(folder.glob("run*")):
-            if not (run_dir / "metrics.json").exists():
+        for run_dir in sorted(calibration_folder(layout, seed).glob("run*")):
+            stats_file = run_dir / "integrity_stats.json"
+            if not (run_dir / "metrics.json").exists() or not stats_file.exists():
                 continue
             metrics, err, bound, loc = _errors(run_dir)
-            raw = _raw(metrics, bound)
-            ok = np.isfinite(err) & np.isfinite(raw) & (raw > 0) & loc
+            times = Localisation.from_folder(run_dir).times
+            solved = [s for s in json.loads(stats_file.read_text()) if s.get("solved")]
+            st = np.array([s["t"] for s in solved], float)
+            inn = np.array([np.nan if s.get("innovation_m") is None else s["innovation_m"] for s in solved], float)
+            upto = np.searchsorted(st, times + 1e-6)
+            settings = (metrics.get("settings") or {}).get("localiser") or {}
+            f0, w0 = float(settings.get("innovation_factor", 0.0)), int(settings.get("innovation_window", 1))
+            b0 = bound / float(metrics.get("bound_inflation", 1.0))
+            sigma = np.sqrt(np.maximum(b0 ** 2 - (Z_95 * f0 * _mean_last(inn, upto, w0)) ** 2, 0.0))
+            ok = np.isfinite(err) & np.isfinite(sigma) & (sigma > 0) & loc
             if ok.sum() >= 10:
-                need[f"{seed}/{run_dir.name}"] = float(np.quantile(err[ok] / raw[ok], target))
-    if not need:
-        return {"k": None, "needed": {}}
-    v = np.sort(list(need.values()))
-    k = _ceil(float(np.quantile(v, share, method="higher")), 0.05)
-    return {"k": k, "needed": need, "rule": f"smallest 0.05 step covering {share:.1%} of runs at {target}"}
+                runs.append({"seed": seed, "run": run_dir.name, "err": err[ok], "sigma": sigma[ok],
+                             "innovations": inn, "upto": upto[ok]})
+    return runs
+
+
+def _mean_last(values: np.ndarray, upto: np.ndarray, window: int) -> np.ndarray:
+    """Per entry of ``upto``, the mean of the finite ones among ``values[upto - window:upto]`` (0 if none): the
+    localiser's mean over its last ``window`` innovations."""
+    finite = np.isfinite(values)
+    cs = np.concatenate([[0.0], np.cumsum(np.where(finite, values, 0.0))])
+    cn = np.concatenate([[0], np.cumsum(finite)])
+    lo = np.maximum(np.asarray(upto) - window, 0)
+    n = cn[upto] - cn[lo]
+    return np.where(n > 0, (cs[upto] - cs[lo]) / np.maximum(n, 1), 0.0)
+
+
+def _bound_base(run: dict, window: int, factor: float) -> np.ndarray:
+    """The bound before the inflation, ``Z sqrt(σ² + (f ē)²)`` (``sigma`` holds ``Z σ``)."""
+    from scenesig.localiser.uncertainty import Z_95
+
+    e = _mean_last(run["innovations"], run["upto"], window)
+    return np.sqrt(run["sigma"] ** 2 + (Z_95 * factor * e) ** 2)
+
+
+def _need(ratios: np.ndarray, target: float) -> float:
+    """The smallest factor with which a share ``target`` of the ratios error / bound is within it."""
+    r = np.sort(ratios)
+    return float(r[int(np.ceil(target * len(r) - 1e-9)) - 1])
+
+
+def _smallest_k(needs: np.ndarray, share: float) -> float:
+    """The smallest multiple of 0.05 with which at least ``share`` of the runs (their ``needs``) are covered."""
+    v = np.sort(needs)
+    return _ceil(float(v[int(np.ceil(share * len(v) - 1e-9)) - 1]), 0.05)
+
+
+def inflation(layout: Layout, seeds, **kwargs) -> dict:
+    """The bound model chosen (:func:`choose_bound_model`) on the calibration right-map runs of ``seeds``."""
+    return choose_bound_model(bound_frames(layout, seeds), **kwargs)
+
+
+def choose_bound_model(runs: list[dict], target: float = COVERAGE_OK, share_target: float = 0.95,
+                       assurance: float = 0.9, halvings: int = 300) -> dict:
+    """The bound model -- the innovation window and factor (``scenesig.localiser.uncertainty``) and the inflation
+    ``k`` -- from calibration runs (:func:`bound_frames`: ``seed``, ``err``, ``sigma``, ``innovations``, ``upto``).
+
+    The issue's target is a share (``share_target`` of the runs with ``bound_coverage_95`` >= ``target``) on
+    worlds that were not calibrated on.  A ``k`` that covers exactly that share of the calibration runs is a
+    point estimate, which fresh worlds fall either side of; so the share ``k`` must cover on the calibration
+    runs is chosen too, with what it gives on held-out worlds:
+
+    * for every window, factor and share of the grid, ``k`` is the smallest multiple of 0.05 with which at
+      least that share of the runs reach coverage ``target``;
+    * *held out*: ``halvings`` times (a fixed seed), the worlds are split into two random halves, ``k`` is
+      chosen by the same share on one half and the other half's rate of runs reaching ``target`` measured;
+      a point is admissible when that rate is at least ``share_target`` in at least ``assurance`` of the
+      halvings (the 10th percentile, with the defaults);
+    * chosen: the admissible point with the smallest median of the runs' median bound (a wide bound covers
+      anything: the bound a user reads is what is minimised); with none admissible, the best 10th percentile.
+    """
+    if not runs:
+        return {"k": None, "grid": []}
+    seeds = np.array([r["seed"] for r in runs])
+    worlds = np.unique(seeds)
+    rng = np.random.default_rng(0)
+    splits = [np.isin(seeds, rng.choice(worlds, len(worlds) // 2, replace=False)) for _ in range(halvings)]
+    splits = [m for m in splits if m.any() and (~m).any()]
+    grid = []
+    for window in INNOVATION_WINDOWS:
+        for factor in INNOVATION_FACTORS:
+            bases = [_bound_base(r, window, factor) for r in runs]
+            needs = np.array([_need(r["err"] / b, target) for r, b in zip(runs, bases)])
+            unit = np.array([np.median(b) for b in bases])
+            for share in COVERED_SHARES:
+                k = _smallest_k(needs, share)
+                held = [float(np.mean(needs[~m] <= _smallest_k(needs[m], share))) for m in splits]
+                grid.append({"window": window, "factor": factor, "share": share, "k": round(k, 2),
+                             "median_bound_m": float(np.median(k * unit)),
+                             "covered_rate": float(np.mean(needs <= k + 1e-12)),
+                             "held_out_mean": float(np.mean(held)) if held else None,
+                             "held_out_p10": float(np.quantile(held, 1.0 - assurance)) if held else None})
+    ok = [g for g in grid if g["held_out_p10"] is not None and g["held_out_p10"] >= share_target]
+    best = (min(ok, key=lambda g: (g["median_bound_m"], g["window"], g["factor"])) if ok else
+            max(grid, key=lambda g: (g["held_out_p10"] or 0.0, -g["median_bound_m"])))
+    return {**{key: best[key] for key in ("k", "window", "factor", "share", "median_bound_m", "covered_rate",
+                                          "held_out_mean", "held_out_p10")},
+            "runs": len(runs), "worlds": int(len(worlds)), "admissible": len(ok), "grid": grid,
+            "rule": f"per window/factor/share: the smallest 0.05 step covering the share of runs at {target}; "
+                    f"admissible if, over {len(splits)} random halvings of the worlds, the k of one half covers "
+                    f">= {share_target:.0%} of the other half's runs in >= {assurance:.0%} of them; the smallest "
+                    f"median bound"}

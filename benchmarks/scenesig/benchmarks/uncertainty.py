@@ -9,9 +9,9 @@ Reads ``scenesig localise`` outputs of runs with truth (``metrics.json``, ``fram
 * ``lateral_bound_95_m_median`` over the localised frames;
 * ``raw_ratio_p95`` -- the 95th percentile of ``|error| / bound_raw`` over the localised frames, where
   ``bound_raw`` is the bound without the inflation the output was written with (``bound_inflation`` in
-  its ``metrics.json``; 1 where absent, as before it existed): the inflation that would
-  make the raw marginal's bounds cover exactly 95 % of them (how :data:`INFLATION` was chosen, on
-  calibration runs that are not reported);
+  its ``metrics.json``; 1 where absent, as before it existed) -- the marginal with the localiser's
+  innovation term (:func:`scenesig.localiser.uncertainty.innovation_variance`): the inflation that would
+  make those bounds cover exactly 95 % of them;
 * ``coverage_at`` -- the coverage the raw bounds times each factor of ``--factors`` would give.
 
 Nothing is timed; the figures depend only on the outputs.

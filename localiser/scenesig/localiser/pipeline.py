@@ -30,6 +30,7 @@ from __future__ import annotations
 import bisect
 import threading
 import time
+from collections import deque
 from typing import Callable
 
 import numpy as np
@@ -45,7 +46,8 @@ from .methods import Measurement, MotionPrior, WeakLocaliser, available_methods,
 from .posegraph import PoseGraph
 from .se2 import PlaneSnapper
 from .signature_method import SignatureLocaliser, signature_default_config
-from .solver import LocalisationConstraint
+from .solver import LocalisationConstraint, pose_log
+from .uncertainty import INNOVATION_FACTOR, INNOVATION_WINDOW, innovation_variance
 
 __all__ = ["default_config", "signature_default_config", "MotionPrior", "Measurement", "WeakLocaliser", "SignatureLocaliser", "Localiser",
            "register_method", "make_method", "available_methods", "odometry_covariance"]
@@ -69,6 +71,11 @@ default_config = {
     # Without an oracle (``oracle=None``): the covariance of a pose found by global localisation or
     # relocalisation (the graph restarts from it); the sequence check already vetted it.
     "fix_sigma": [0.01, 0.01, 0.02, 0.5, 0.5, 0.2],
+    # The stated covariance adds the planar variance the recent localisations' innovations show
+    # (localiser.uncertainty.innovation_variance): the mean over this many, times this factor.  0 leaves
+    # the marginal alone.
+    "innovation_window": INNOVATION_WINDOW,
+    "innovation_factor": INNOVATION_FACTOR,
     "posegraph": {},                 # overrides of localiser.posegraph.default_config
 }
 
@@ -142,6 +149,8 @@ class Localiser:
         self._fix = 0.0                   # cumulative distance at the last localisation or reset
         self.odometry_seconds = 0.0
         self.n_odometry = 0
+        # planar innovations (m) of the latest localisations: the stated covariance's innovation term
+        self._innovations: deque[float] = deque(maxlen=max(int(cfg["innovation_window"]), 1))
 
     # --------------------------------------------------------------------------- state
     @property
@@ -299,9 +308,10 @@ class Localiser:
             return self.graph.estimate(float(self.graph.keyframes()[0][0]))
 
     def estimate_with_covariance(self, t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Snapped ``T_world_vehicle`` at time t and the 6x6 marginal covariance of the pose there (vehicle
-        frame, GTSAM order; :meth:`scenesig.localiser.posegraph.PoseGraph.estimate_with_covariance`).  A time
-        before the window gets the window's first pose, as :meth:`estimate` does."""
+        """Snapped ``T_world_vehicle`` at time t and the 6x6 covariance of the pose there (vehicle frame, GTSAM
+        order): the marginal (:meth:`scenesig.localiser.posegraph.PoseGraph.estimate_with_covariance`) plus the
+        recent innovations' planar variance (:func:`scenesig.localiser.uncertainty.innovation_variance`).  A
+        time before the window gets the window's first pose, as :meth:`estimate` does."""
         with self._lock:
             try:
                 T, C = self.graph.estimate_with_covariance(t)
@@ -309,6 +319,11 @@ class Localiser:
                 if t is None:
                     raise
                 T, C = self.graph.estimate_with_covariance(float(self.graph.keyframes()[0][0]))
+            v = innovation_variance(self._innovations, self.config["innovation_factor"])
+            if v > 0.0:
+                C = C.copy()
+                C[3, 3] += v         # vehicle-frame x, y: isotropic in the plane, so in the world too
+                C[4, 4] += v
             return self.snapper.snap(T), C
 
     def covariance(self, t: float | None = None) -> np.ndarray:
@@ -350,6 +365,10 @@ class Localiser:
         with self._lock:
             if self.lost:        # without an oracle only the relocaliser's vetted fixes end "lost"
                 return False
+            if self.graph.initialised:
+                # the detections' pose against the prediction, as the integrity monitor's innovation
+                nu = pose_log(invert(self.snapper.snap(self._graph_estimate(t))) @ c.T_world_vehicle_detections)
+                self._innovations.append(float(np.linalg.norm(nu[3:5])))
             ok = self.graph.add_localisation(t, c.T_world_vehicle_detections, information=c.information_detections)
             if ok:
                 d = self.distance_at(t)
