@@ -179,8 +179,8 @@ def _median(values) -> float | None:
 
 def _defaults_key(mode: str) -> str:
     """``-`` and a digest of the defaults a ``mode``'s localisations depend on: the camera check's (it may
-    refuse a run before replaying) and, for an evaluation, the monitor's and the bound inflation
-    (calibration runs with the monitor's tests off).  A localisation cached under other defaults is not
+    refuse a run before replaying) and, for an evaluation, the monitor's and the bound model's
+    (calibration runs with the monitor's tests off, and the bound model is chosen from them).  A localisation cached under other defaults is not
     reused once they change."""
     import hashlib
 
@@ -190,9 +190,8 @@ def _defaults_key(mode: str) -> str:
 
     used: dict = {"camera_check": camera_config}
     if mode == "evaluate":
-        used.update({"integrity": default_config, "inflation": INFLATION})
-        if INNOVATION_FACTOR:     # (keys of localisations made before the innovation term stay valid)
-            used["innovation"] = [INNOVATION_WINDOW, INNOVATION_FACTOR]
+        used.update({"integrity": default_config, "inflation": INFLATION,
+                     "innovation": [INNOVATION_WINDOW, INNOVATION_FACTOR]})
     return "-" + hashlib.sha256(json.dumps(used, sort_keys=True, default=str).encode()).hexdigest()[:10]
 
 
@@ -584,6 +583,13 @@ def choose(streams: list[dict], alpha: float, beta: float) -> dict:
         logger.setLevel(level)
 
 
+def _backstop(values: np.ndarray, step: float, default: float) -> float:
+    """1.1 x the largest tracking-window value, up to ``step``; without a single window on the right maps
+    (nothing tracked 4 frames) there is no data, and the default stays."""
+    v = values[np.isfinite(values)]
+    return _ceil(1.1 * float(v.max()), step) if v.size else float(default)
+
+
 def _choose(streams: list[dict], alpha: float, beta: float) -> dict:
     from scenesig.localiser.integrity import default_config
 
@@ -591,12 +597,8 @@ def _choose(streams: list[dict], alpha: float, beta: float) -> dict:
     wrong = [s for s in streams if s["kind"] == "wrong"]
     n = int(default_config["window"])
     win = np.concatenate([_windows(s["stats"], n) for s in right]) if right else np.zeros((0, 2))
-    # (without a single tracking window on the right maps -- nothing tracked 4 frames -- the backstops
-    # have no data and keep their defaults)
-    has = np.isfinite(win).any(axis=0) if len(win) else np.zeros(2, bool)
-    chosen = {"sprt_max_residual": _ceil(1.1 * np.nanmax(win[:, 0]), 0.1) if has[0] else
-              float(default_config["sprt_max_residual"]),
-              "sprt_max_nis": _ceil(1.1 * np.nanmax(win[:, 1]), 1.0) if has[1] else float(default_config["sprt_max_nis"])}
+    chosen = {"sprt_max_residual": _backstop(win[:, 0], 0.1, default_config["sprt_max_residual"]),
+              "sprt_max_nis": _backstop(win[:, 1], 1.0, default_config["sprt_max_nis"])}
     base = {**chosen, "sprt_alpha": alpha, "sprt_beta": beta}
     grid = []
     for kappa, gamma, phi, h, frames, places in itertools.product(
@@ -664,7 +666,6 @@ def bound_frames(layout: Layout, seeds) -> list[dict]:
     frames (``integrity_stats.json``) and ``upto``, how many of them came at or before each frame."""
     from scenesig.benchmarks.uncertainty import _errors
     from scenesig.localiser.uncertainty import Z_95
-    from scenesig.surveys.localisation import Localisation
 
     runs = []
     for seed in seeds:
@@ -672,8 +673,7 @@ def bound_frames(layout: Layout, seeds) -> list[dict]:
             stats_file = run_dir / "integrity_stats.json"
             if not (run_dir / "metrics.json").exists() or not stats_file.exists():
                 continue
-            metrics, err, bound, loc = _errors(run_dir)
-            times = Localisation.from_folder(run_dir).times
+            metrics, err, bound, loc, times = _errors(run_dir)
             solved = [s for s in json.loads(stats_file.read_text()) if s.get("solved")]
             st = np.array([s["t"] for s in solved], float)
             inn = np.array([np.nan if s.get("innovation_m") is None else s["innovation_m"] for s in solved], float)
@@ -700,14 +700,6 @@ def _mean_last(values: np.ndarray, upto: np.ndarray, window: int) -> np.ndarray:
     return np.where(n > 0, (cs[upto] - cs[lo]) / np.maximum(n, 1), 0.0)
 
 
-def _bound_base(run: dict, window: int, factor: float) -> np.ndarray:
-    """The bound before the inflation, ``Z sqrt(σ² + (f ē)²)`` (``sigma`` holds ``Z σ``)."""
-    from scenesig.localiser.uncertainty import Z_95
-
-    e = _mean_last(run["innovations"], run["upto"], window)
-    return np.sqrt(run["sigma"] ** 2 + (Z_95 * factor * e) ** 2)
-
-
 def _need(ratios: np.ndarray, target: float) -> float:
     """The smallest factor with which a share ``target`` of the ratios error / bound is within it."""
     r = np.sort(ratios)
@@ -716,8 +708,7 @@ def _need(ratios: np.ndarray, target: float) -> float:
 
 def _smallest_k(needs: np.ndarray, share: float) -> float:
     """The smallest multiple of 0.05 with which at least ``share`` of the runs (their ``needs``) are covered."""
-    v = np.sort(needs)
-    return _ceil(float(v[int(np.ceil(share * len(v) - 1e-9)) - 1]), 0.05)
+    return _ceil(_need(needs, share), 0.05)
 
 
 def inflation(layout: Layout, seeds, **kwargs) -> dict:
@@ -744,6 +735,8 @@ def choose_bound_model(runs: list[dict], target: float = COVERAGE_OK, share_targ
     * chosen: the admissible point with the smallest median of the runs' median bound (a wide bound covers
       anything: the bound a user reads is what is minimised); with none admissible, the best 10th percentile.
     """
+    from scenesig.localiser.uncertainty import Z_95
+
     if not runs:
         return {"k": None, "grid": []}
     seeds = np.array([r["seed"] for r in runs])
@@ -753,8 +746,10 @@ def choose_bound_model(runs: list[dict], target: float = COVERAGE_OK, share_targ
     splits = [m for m in splits if m.any() and (~m).any()]
     grid = []
     for window in INNOVATION_WINDOWS:
+        means = [_mean_last(r["innovations"], r["upto"], window) for r in runs]
         for factor in INNOVATION_FACTORS:
-            bases = [_bound_base(r, window, factor) for r in runs]
+            # the bound before the inflation, Z sqrt(σ² + (f ē)²) ("sigma" holds Z σ)
+            bases = [np.sqrt(r["sigma"] ** 2 + (Z_95 * factor * e) ** 2) for r, e in zip(runs, means)]
             needs = np.array([_need(r["err"] / b, target) for r, b in zip(runs, bases)])
             unit = np.array([np.median(b) for b in bases])
             for share in COVERED_SHARES:

@@ -25,7 +25,8 @@ import numpy as np
 
 
 def _errors(folder: Path):
-    """(lateral error relative to the map, stated bound, localised flags) per frame of one output."""
+    """(metrics, lateral error relative to the map, stated bound, localised flags, times) per frame of one
+    output."""
     from scenesig.localiser.evaluation import lateral_heading_errors
     from scenesig.localiser.outputs import map_relative_truth, reference_path, run_truth
     from scenesig.mapping.store import MapStore
@@ -46,7 +47,7 @@ def _errors(folder: Path):
     if v.any():
         tru = interpolate_poses(tt, ref, times[v]).reshape(-1, 4, 4)
         lat[v] = lateral_heading_errors(poses[v], tru, reference_path(store))[0]
-    return metrics, np.abs(lat), frames["lateral_bound_95_m"], frames["localised"] > 0
+    return metrics, np.abs(lat), frames["lateral_bound_95_m"], frames["localised"] > 0, times
 
 
 def _raw(metrics, bound):
@@ -79,7 +80,7 @@ def main(argv=None) -> int:
     factors = [float(f) for f in args.factors.split(",")]
     per, pooled = {}, [[], [], [], []]
     for folder in args.outputs:
-        metrics, err, bound, loc = _errors(Path(folder))
+        metrics, err, bound, loc, _ = _errors(Path(folder))
         raw = _raw(metrics, bound)
         key = f"{metrics['run']}/{metrics['method']}" + ("/no-gps" if metrics.get("oracle") == "none" else "")
         per[key] = {**_stats(err, bound, raw, loc, factors), "bound_inflation": metrics.get("bound_inflation", 1.0),
