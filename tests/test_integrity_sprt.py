@@ -152,10 +152,10 @@ def test_bench_seeds_and_summary():
     for bad in ("5", "x-3", "5-3"):
         with pytest.raises(ValueError):
             parse_seeds(bad)
-    runs = [{"kind": "wrong", "localisations": 0, "integrity_alerts": 2, "false_fixes": 0, "failures": 0,
-             "bound_coverage_95": None, "lateral_bound_95_m": None},
-            {"kind": "wrong", "localisations": 4, "integrity_alerts": 1, "false_fixes": 4, "failures": 0,
-             "bound_coverage_95": None, "lateral_bound_95_m": None},
+    runs = [{"kind": "wrong", "run": "drive1", "localisations": 0, "integrity_alerts": 2, "false_fixes": 0,
+             "failures": 0, "bound_coverage_95": None, "lateral_bound_95_m": None},
+            {"kind": "wrong", "run": "drive3", "localisations": 4, "integrity_alerts": 1, "false_fixes": 4,
+             "failures": 0, "bound_coverage_95": None, "lateral_bound_95_m": None},
             {"kind": "right", "localisations": 90, "integrity_alerts": 0, "false_fixes": 0, "failures": 0,
              "bound_coverage_95": 0.95, "lateral_bound_95_m": 0.5},
             {"kind": "right", "localisations": 80, "integrity_alerts": 1, "false_fixes": 0, "failures": 0,
@@ -163,6 +163,42 @@ def test_bench_seeds_and_summary():
     s = summarise([{"seed": 1, "runs": runs}])
     assert s["wrong_runs_zero_accepted_rate"] == 0.5 and s["wrong_run_max_accepted"] == 4
     assert s["right_runs_with_alert_rate"] == 0.5 and s["right_runs_coverage_ok_rate"] == 0.5
+    # the second partner's run is in the totals, not in the first partner's figures
+    assert s["wrong_first_partner"] == {"wrong_runs": 1, "wrong_runs_zero_accepted_rate": 1.0,
+                                        "wrong_run_max_accepted": 0}
+    assert s["wrong_runs_accepted"] == ["1/drive3: 4"]
+
+
+def test_bench_partner_worlds_and_their_run_names():
+    """Each map meets the runs of the next ``count`` worlds of the list (never its own); the first partner's
+    copies keep the names a one-partner cache holds."""
+    from scenesig.benchmarks.integrity import partner_worlds, wrong_alias
+
+    assert partner_worlds([1, 2, 3], 1) == {1: [2], 2: [3], 3: [1]}
+    assert partner_worlds([1, 2, 3], 2) == {1: [2, 3], 2: [3, 1], 3: [1, 2]}
+    assert partner_worlds([1, 2], 5) == {1: [2], 2: [1]}
+    assert [wrong_alias(j, i) for j in range(2) for i in range(2)] == ["drive1", "drive2", "drive3", "drive4"]
+
+
+def test_bench_localises_each_partners_runs_against_the_map(tmp_path, monkeypatch):
+    """With two partner worlds a map meets four wrong runs: each partner's live night and sunny training run,
+    copied under its own name, each row naming the world it came from."""
+    from scenesig.benchmarks import integrity as bench
+
+    calls = []
+    monkeypatch.setattr(bench, "wrong_copy", lambda world, src, alias: (calls.append((src, alias)), src)[1])
+    monkeypatch.setattr(bench, "localise_one", lambda layout, seed, run, kind, cond, mode, every:
+                        {"run": run.name, "kind": kind, "condition": cond, "localisations": 0})
+    layout = bench.Layout(tmp_path, "tiny", 4.0)
+    world = bench.localise_world(layout, 1, [2, 3], "evaluate", 1)
+    wrong = [r for r in world["runs"] if r["kind"] == "wrong"]
+    assert [r["kind"] for r in world["runs"]].count("right") == 5
+    assert [r["from_seed"] for r in wrong] == [2, 2, 3, 3] and world["wrong_runs_from_seeds"] == [2, 3]
+    names = layout.run_names()
+    assert [(src, alias) for src, alias in calls] == [
+        (layout.runs(2) / names[6], "drive1"), (layout.runs(2) / names[0], "drive2"),
+        (layout.runs(3) / names[6], "drive3"), (layout.runs(3) / names[0], "drive4")]
+    assert [r["condition"] for r in wrong] == ["night", "sunny"] * 2
 
 
 def test_bench_does_not_reuse_a_wrong_run_cached_from_another_world(tmp_path):

@@ -12,6 +12,9 @@ silent on the right one, on worlds nobody tuned it on.  For each seed this bench
    night and its sunny training run) against it (``kind: wrong``).  The wrong-world runs are copies
    with ``run.toml``'s ``[metadata]`` removed, the name replaced (``drive1``, ``drive2``) and the
    conditions set to ``unknown`` (files linked): the localiser sees images, odometry and the camera only.
+   ``--wrong-partners K`` pairs each map with the next ``K`` worlds' runs instead (``drive3``, ``drive4``
+   from the second, ...): a look-alike that passes probation is a rare event, and the wrong-map targets are
+   only as sure as the number of wrong runs they were measured on.
 
 ``--calibrate`` runs with the monitor's tests switched off, recording every detector frame's statistics
 (``integrity_stats.json`` beside each localisation) so thresholds can be chosen from them
@@ -253,17 +256,37 @@ def prepare_world(layout: Layout, seed: int) -> float:
     return time.perf_counter() - t0
 
 
-def localise_world(layout: Layout, seed: int, partner: int, mode: str, every: int) -> dict:
-    """Every run of one world's row list: the five live runs and the partner world's two runs."""
+def wrong_alias(partner_index: int, run_index: int) -> str:
+    """The stripped copy's name of ``WRONG[run_index]`` from the ``partner_index``-th partner world: ``drive1``,
+    ``drive2`` from the first (the names a one-partner cache already holds), ``drive3``, ``drive4`` from the
+    second, and so on."""
+    return f"drive{len(WRONG) * partner_index + run_index + 1}"
+
+
+#: the first partner world's copies (the names with one partner)
+FIRST_PARTNER = tuple(wrong_alias(0, i) for i in range(len(WRONG)))
+
+
+def localise_world(layout: Layout, seed: int, partners: list[int], mode: str, every: int) -> dict:
+    """Every run of one world's row list: the five live runs, and each partner world's ``WRONG`` runs."""
     names = layout.run_names()
     rows = []
     for name, cond in zip(names[len(TRAINING):], LIVE):
         rows.append(localise_one(layout, seed, layout.runs(seed) / name, "right", cond, mode, every))
-    for index, alias in WRONG:
-        src = layout.runs(partner) / names[index]
-        dst = wrong_copy(layout.world(seed), src, alias)
-        rows.append(localise_one(layout, seed, dst, "wrong", (TRAINING + LIVE)[index], mode, every))
-    return {"seed": seed, "wrong_runs_from_seed": partner, "runs": rows}
+    for j, partner in enumerate(partners):
+        for i, (index, _) in enumerate(WRONG):
+            src = layout.runs(partner) / names[index]
+            dst = wrong_copy(layout.world(seed), src, wrong_alias(j, i))
+            row = localise_one(layout, seed, dst, "wrong", (TRAINING + LIVE)[index], mode, every)
+            rows.append({**row, "from_seed": partner})
+    return {"seed": seed, "wrong_runs_from_seed": partners[0], "wrong_runs_from_seeds": list(partners),
+            "runs": rows}
+
+
+def partner_worlds(seeds: list[int], count: int) -> dict[int, list[int]]:
+    """Each world's partners: the ``count`` seeds after it in the list (cyclically; never itself)."""
+    count = min(count, len(seeds) - 1)
+    return {s: [seeds[(i + j) % len(seeds)] for j in range(1, count + 1)] for i, s in enumerate(seeds)}
 
 
 def _ratio(rows, outcome: str) -> dict:
@@ -282,10 +305,17 @@ def summarise(worlds: list[dict]) -> dict:
     def rate(x):
         return float(np.mean(x)) if len(x) else None
 
+    first = [r for r in wrong if r.get("run") in FIRST_PARTNER]
     return {
         "worlds": len(worlds), "right_runs": len(right), "wrong_runs": len(wrong),
+        # the next world's two runs alone (the protocol with one partner), beside every partner's
+        "wrong_first_partner": {"wrong_runs": len(first),
+                                "wrong_runs_zero_accepted_rate": rate([r["localisations"] == 0 for r in first]),
+                                "wrong_run_max_accepted": max((r["localisations"] for r in first), default=None)},
         "wrong_runs_zero_accepted_rate": rate([r["localisations"] == 0 for r in wrong]),
         "wrong_run_max_accepted": max((r["localisations"] for r in wrong), default=None),
+        "wrong_runs_accepted": [f'{w["seed"]}/{r.get("run")}: {r["localisations"]}' for w in worlds for r in w["runs"]
+                                if r["kind"] == "wrong" and r["localisations"] > 0],
         "wrong_runs_with_alert_rate": rate([r["integrity_alerts"] > 0 for r in wrong]),
         "right_runs_with_alert_rate": rate([r["integrity_alerts"] > 0 for r in right]),
         "right_runs_coverage_ok_rate": rate([c is not None and c >= COVERAGE_OK for c in cov]),
@@ -365,14 +395,15 @@ def _prepare_job(args):
 
 
 def _localise_job(args):
-    layout, seed, partner, mode, every = args
-    return localise_world(layout, seed, partner, mode, every)
+    layout, seed, partners, mode, every = args
+    return localise_world(layout, seed, partners, mode, every)
 
 
 def run_bench(seeds: list[int], mode: str, cache, preset: str = "compact", camera_hz: float = 5.0, every: int = 1,
-              jobs: int = 1, prepare_only: bool = False, camera_check: bool = False) -> dict:
-    """Simulate, build and localise every seed's world (resuming from ``cache``); with ``camera_check`` also
-    judge every live run's calibration check (its own focal lengths, halved, doubled); the JSON's content."""
+              jobs: int = 1, prepare_only: bool = False, camera_check: bool = False, wrong_partners: int = 1) -> dict:
+    """Simulate, build and localise every seed's world (resuming from ``cache``), each map also against the
+    runs of the ``wrong_partners`` worlds after it; with ``camera_check`` also judge every live run's
+    calibration check (its own focal lengths, halved, doubled); the JSON's content."""
     layout = Layout(cache, preset, camera_hz)
     t0 = time.perf_counter()
     pool = ProcessPoolExecutor(max_workers=jobs) if jobs > 1 else None
@@ -381,7 +412,7 @@ def run_bench(seeds: list[int], mode: str, cache, preset: str = "compact", camer
         prepared = dict(mapper(_prepare_job, [(layout, s) for s in seeds]))
         failed = {s: v for s, v in prepared.items() if isinstance(v, str)}
         ok = [s for s in seeds if s not in failed]
-        partners = {s: ok[(i + 1) % len(ok)] for i, s in enumerate(ok)}
+        partners = partner_worlds(ok, wrong_partners)
         worlds = [] if prepare_only or len(ok) < 2 else list(
             mapper(_localise_job, [(layout, s, partners[s], mode, every) for s in ok]))
         turn_rows = ([r for rows in mapper(_camera_job, [(layout, s) for s in ok]) for r in rows]
@@ -391,7 +422,8 @@ def run_bench(seeds: list[int], mode: str, cache, preset: str = "compact", camer
             pool.shutdown()
     return {"benchmark": "integrity", "mode": mode, "seeds": seeds, "preset": preset, "camera_hz": camera_hz,
             "every": every, "oracle": "none", "training": TRAINING, "live": LIVE,
-            "wrong": [{"run_index": i, "as": a} for i, a in WRONG], "cache": str(layout.root),
+            "wrong": [{"run_index": i, "as": a} for i, a in WRONG], "wrong_partners": wrong_partners,
+            "cache": str(layout.root),
             "prepare_seconds": {str(k): round(v, 1) for k, v in prepared.items() if k not in failed},
             "failed_worlds": {str(k): v for k, v in failed.items()},
             "seconds": round(time.perf_counter() - t0, 1), "worlds": worlds,
@@ -421,6 +453,9 @@ def main(argv=None) -> int:
                         "demo's 10 Hz --every 2 rate, at half the rendering)")
     p.add_argument("--every", type=int, default=1, help="localise every N-th frame (default 1)")
     p.add_argument("--jobs", type=int, default=1, help="worlds processed in parallel")
+    p.add_argument("--wrong-partners", type=int, default=1,
+                   help="localise each map against the runs of this many other worlds (the next seeds of the list; "
+                        "default 1: two wrong runs per world)")
     p.add_argument("--cache", default="maps/bench_integrity",
                    help="where worlds, maps and localisations are kept (default maps/bench_integrity; several GB)")
     p.add_argument("--prepare-only", action="store_true", help="simulate and build only")
@@ -439,16 +474,16 @@ def main(argv=None) -> int:
         seeds = parse_seeds(a.seeds)
     except ValueError as exc:
         p.error(str(exc))
-    if a.every < 1 or a.jobs < 1 or a.camera_hz <= 0:
-        p.error("--every and --jobs must be >= 1, --camera-hz positive")
+    if a.every < 1 or a.jobs < 1 or a.wrong_partners < 1 or a.camera_hz <= 0:
+        p.error("--every, --jobs and --wrong-partners must be >= 1, --camera-hz positive")
     if a.choose and not a.calibrate:
         p.error("--choose needs --calibrate")
     result = run_bench(seeds, "calibrate" if a.calibrate else "evaluate", a.cache, a.preset, a.camera_hz, a.every,
-                       a.jobs, a.prepare_only, a.camera_check)
+                       a.jobs, a.prepare_only, a.camera_check, a.wrong_partners)
     if a.choose and result["worlds"]:
         layout = Layout(a.cache, a.preset, a.camera_hz)
         done = [w["seed"] for w in result["worlds"]]
-        result["choice"] = choose(recorded_streams(layout, done), a.alpha, a.beta)
+        result["choice"] = choose(recorded_streams(layout, result["worlds"]), a.alpha, a.beta)
         result["choice"]["inflation"] = inflation(layout, done)
     if a.choose and "camera_check" in result:
         # the camera check's turn minimum: no correctly calibrated calibration run refused
@@ -462,19 +497,19 @@ if __name__ == "__main__":      # pragma: no cover
 
 
 # ------------------------------------------------------------------------------------ choosing settings
-def recorded_streams(layout: Layout, seeds) -> list[dict]:
-    """Every calibration localisation's recorded frame statistics, with its map's firing rates."""
+def recorded_streams(layout: Layout, worlds: list[dict]) -> list[dict]:
+    """The recorded frame statistics of the calibration localisations ``worlds`` lists (the JSON's rows: a
+    cache may hold more, from a run with more partner worlds), each with its map's firing rates."""
     from scenesig.localiser import firing
     from scenesig.localiser.integrity import FrameStats
     from scenesig.mapping.store import MapStore
 
     out = []
-    for seed in seeds:
+    for world in worlds:
+        seed = world["seed"]
         folder = calibration_folder(layout, seed)
-        if not folder.is_dir():
-            continue
         rates = firing.load(MapStore.open(layout.map(seed)))
-        for run_dir in sorted(folder.iterdir()):
+        for run_dir in [folder / r["run"] for r in world["runs"]]:
             stats_path, row_path = run_dir / "integrity_stats.json", run_dir / "row.json"
             if not (stats_path.exists() and row_path.exists()):
                 continue
