@@ -26,7 +26,9 @@ JSON (stdout and ``--json``): ``worlds`` (per world: ``seed``, ``runs`` with ``k
 ``localisations``, ``false_fixes``, ``integrity_alerts``, ``bound_coverage_95``, ``lateral_bound_95_m``
 (the localised frames' median), ``failures``) and ``summary`` with the target rates
 (``wrong_runs_zero_accepted_rate``, ``wrong_run_max_accepted``, ``right_runs_with_alert_rate``,
-``right_runs_coverage_ok_rate``).  On a wrong-world run every accepted localisation is a false fix (the
+``right_runs_coverage_ok_rate``; with several partner worlds, ``wrong_first_partner`` gives the wrong-map
+figures over the first partner's runs alone, and ``wrong_runs_accepted`` names every wrong run that accepted
+anything).  On a wrong-world run every accepted localisation is a false fix (the
 map is of another place), so ``false_fixes`` equals ``localisations`` there.
 
 ``--camera-check`` also measures the camera check (:mod:`scenesig.mapping.camera_check`) on every live run
