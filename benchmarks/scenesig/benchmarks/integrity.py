@@ -53,8 +53,8 @@ import numpy as np
 
 TRAINING = ["sunny", "overcast", "dusk", "night", "rain", "snow"]
 LIVE = ["night", "fog", "snow", "autumn", "morning"]
-#: the other world's runs localised against a map: (run index in its world, name of the stripped copy)
-WRONG = [(6, "drive1"), (0, "drive2")]        # its live night run, its sunny training run
+#: the other world's runs localised against a map, by index in its world (copies named by ``wrong_alias``)
+WRONG = (6, 0)        # its live night run, its sunny training run
 
 #: ``integrity`` overrides that switch every test off while the monitor still records its statistics
 #: (calibration: thresholds are chosen from what the right and the wrong map give, not from a verdict)
@@ -276,7 +276,7 @@ def localise_world(layout: Layout, seed: int, partners: list[int], mode: str, ev
     for name, cond in zip(names[len(TRAINING):], LIVE):
         rows.append(localise_one(layout, seed, layout.runs(seed) / name, "right", cond, mode, every))
     for j, partner in enumerate(partners):
-        for i, (index, _) in enumerate(WRONG):
+        for i, index in enumerate(WRONG):
             src = layout.runs(partner) / names[index]
             dst = wrong_copy(layout.world(seed), src, wrong_alias(j, i))
             row = localise_one(layout, seed, dst, "wrong", (TRAINING + LIVE)[index], mode, every)
@@ -307,15 +307,16 @@ def summarise(worlds: list[dict]) -> dict:
     def rate(x):
         return float(np.mean(x)) if len(x) else None
 
+    def wrong_targets(rows):
+        return {"wrong_runs_zero_accepted_rate": rate([r["localisations"] == 0 for r in rows]),
+                "wrong_run_max_accepted": max((r["localisations"] for r in rows), default=None)}
+
     first = [r for r in wrong if r.get("run") in FIRST_PARTNER]
     return {
         "worlds": len(worlds), "right_runs": len(right), "wrong_runs": len(wrong),
         # the next world's two runs alone (the protocol with one partner), beside every partner's
-        "wrong_first_partner": {"wrong_runs": len(first),
-                                "wrong_runs_zero_accepted_rate": rate([r["localisations"] == 0 for r in first]),
-                                "wrong_run_max_accepted": max((r["localisations"] for r in first), default=None)},
-        "wrong_runs_zero_accepted_rate": rate([r["localisations"] == 0 for r in wrong]),
-        "wrong_run_max_accepted": max((r["localisations"] for r in wrong), default=None),
+        "wrong_first_partner": {"wrong_runs": len(first), **wrong_targets(first)},
+        **wrong_targets(wrong),
         "wrong_runs_accepted": [f'{w["seed"]}/{r.get("run")}: {r["localisations"]}' for w in worlds for r in w["runs"]
                                 if r["kind"] == "wrong" and r["localisations"] > 0],
         "wrong_runs_with_alert_rate": rate([r["integrity_alerts"] > 0 for r in wrong]),
@@ -424,7 +425,8 @@ def run_bench(seeds: list[int], mode: str, cache, preset: str = "compact", camer
             pool.shutdown()
     return {"benchmark": "integrity", "mode": mode, "seeds": seeds, "preset": preset, "camera_hz": camera_hz,
             "every": every, "oracle": "none", "training": TRAINING, "live": LIVE,
-            "wrong": [{"run_index": i, "as": a} for i, a in WRONG], "wrong_partners": wrong_partners,
+            "wrong": [{"run_index": index, "as": wrong_alias(0, i)} for i, index in enumerate(WRONG)],
+            "wrong_partners": wrong_partners,
             "cache": str(layout.root),
             "prepare_seconds": {str(k): round(v, 1) for k, v in prepared.items() if k not in failed},
             "failed_worlds": {str(k): v for k, v in failed.items()},
