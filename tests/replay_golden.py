@@ -1,25 +1,28 @@
-"""Digests of ``scenesig localise``'s outputs on the tiny world, to hold the replay byte-identical.
+"""Digests of ``scenesig localise``'s outputs on the tiny world, to hold the replay's results fixed.
 
 ``tests/data/replay_golden.json`` holds the SHA-256 of ``trajectory.tum``, ``covariances.csv``,
 ``frames.csv`` and ``metrics.json`` (without its timing keys, the map's and the run's paths and the map's
 random identity, which measure the machine, the folders and the build, not the result) of every method on the
-night and overcast runs of the tiny world (``tests/build_world.py``), recorded from the commit the file names
-(433dc8c: main with the integrity monitor's sequential test, the replay as it was *before* it became a driver
-over :class:`scenesig.localiser.session.Session`; first recorded from 325a86a, re-recorded when the integrity
-work changed the alerts on purpose, again with the defaults re-chosen on twelve calibration worlds patched
-into 433dc8c's two constants -- ``INFLATION`` and the monitor's ``sprt_dispersion`` / ``cusum_h`` -- and again
-when the monitor's evidence became the solver's inliers on every frame and its defaults were re-chosen: those
-four settings and the two lines that count a frame's fired signatures patched in; on the tiny world only
-``metrics.json`` changed, through the settings it records; and again when the stated covariance gained the
-innovation term, with ``INFLATION`` 2.15 and the term -- the localiser's innovation record and the two lines
-adding it to the covariance -- patched in: bounds and covariances changed, trajectories did not).  The
-recording is another implementation than the one tested, so a match says the refactor changed no byte.
-Digests hold on the machine that recorded them (the same libraries); elsewhere regenerate from the recording commit.
+night and overcast runs of the tiny world (``tests/build_world.py``).
 
-Regenerate (only when a change of results is intended, and say so in the commit), with the recording
-commit's code on ``PYTHONPATH`` (``git worktree add DIR SHA``)::
+History.  The digests first guarded the move of the per-frame step into
+:class:`scenesig.localiser.session.Session`: they were recorded from the code *before* the move (325a86a,
+then 433dc8c with main's later defaults patched in), another implementation than the one tested, and main
+matched them byte for byte (the last time in CI at 8441525).  On another machine (an AMD EPYC with AVX2, no
+AVX-512) the same code gave other bytes for every run that localises, under each OpenBLAS
+kernel that CPU can run (Haswell, Zen, Sandybridge, Nehalem, Prescott).  A result's last bits depend on the
+SIMD kernels the libraries pick for the CPU at hand (OpenBLAS's core type, numpy's and OpenCV's dispatched
+loops, glibc's libm variants, numba's target), and on the night run a last bit can move a detection window
+and so a detection (``OPENBLAS_CORETYPE`` alone, Haswell against Nehalem, moved the night ``signatures``
+trajectory by up to 1.2 cm and changed a detection).  So
+the digests are now made and checked in one pinned numerical environment, :data:`PORTABLE_ENV` (the x86-64
+baseline kernels, one BLAS thread), in a process of their own that simulates, builds and localises the tiny
+world from nothing; recorded from main (the commit the file names), they guard against any change of
+results that is not intended, on whichever x86-64 CPU the suite runs.
 
-    python tests/replay_golden.py BASE_FOLDER [--commit SHA]  # BASE_FOLDER gets tiny_runs/, tiny_map/, golden_map/
+Regenerate (only when a change of results is intended, and say so in the commit)::
+
+    python tests/replay_golden.py BASE_FOLDER --record --commit SHA   # BASE_FOLDER gets tiny_runs/, tiny_map/, ...
 """
 from __future__ import annotations
 
@@ -29,6 +32,23 @@ import sys
 from pathlib import Path
 
 GOLDEN = Path(__file__).resolve().parent / "data" / "replay_golden.json"
+
+#: The numerical environment the digests are made in: every library held to the x86-64 baseline code paths
+#: (SSE2/SSE3, which every x86-64 CPU runs) and to one BLAS thread (a sum split over threads is added in
+#: another order), so the same wheels give the same bytes whatever the CPU offers beyond the baseline.
+PORTABLE_ENV = {
+    "OPENBLAS_CORETYPE": "Prescott",            # numpy's, scipy's and OpenCV's OpenBLAS: the generic kernels
+    "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+    "NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR",   # numpy's dispatched loops
+    "OPENCV_CPU_DISABLE": "SSE4.1,SSE4.2,AVX,FP16,AVX2,AVX512-SKX",      # OpenCV's dispatched loops
+    "OPENCV_IPP": "disabled",                   # Intel IPP (its own dispatch)
+    "NUMBA_CPU_NAME": "generic",                # the solver's and HOG's compiled loops
+    "GLIBC_TUNABLES": "glibc.cpu.hwcaps=-AVX512F,-AVX2,-FMA,-AVX",       # libm's exp, log, pow, sin variants
+    "JSIMD_FORCESSE2": "1",                     # libjpeg-turbo (bit-exact across its kernels by design)
+}
+# Measured on an AVX2 CPU, each left native alone: OpenBLAS's kernel, OpenCV's loops and libm's variants each
+# changed the digests (32, 24 and 27 of 48); numpy's loops, the thread counts, IPP and numba's target did not
+# there (they may on a CPU with AVX-512).
 
 #: (case name, run's condition, method, oracle, every) replayed on the default tiny map (layers signatures,
 #: orb, orb-all): the night run fails and alerts often (the failure rule, the integrity monitor), the
@@ -97,20 +117,45 @@ def tiny_run(base: Path, condition: str):
     return next(r for r in tiny_runs(base) if r.conditions[0] == condition)
 
 
-def main(argv=None) -> int:
+def portable_digests(base: Path, which: str) -> dict:
+    """The digests of the cases ``which`` (``"cases"`` or ``"heavy_cases"``), made from nothing under
+    ``base`` by a process of their own in :data:`PORTABLE_ENV`."""
+    import os
+    import subprocess
+
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), str(base), "--print", which],
+                          env={**os.environ, **PORTABLE_ENV}, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"replay_golden.py {base} --print {which} failed ({proc.returncode}):\n"
+                           f"{proc.stderr[-4000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _digests(base: Path, which: str) -> dict:
     from build_world import tiny_map
+
+    if which == "cases":
+        return replay_digests(tiny_map(base), base, base / "out", CASES)
+    if which == "heavy_cases":
+        return replay_digests(golden_map(base), base, base / "out_heavy", HEAVY_CASES)
+    raise ValueError(f"unknown case set {which!r} (cases, heavy_cases)")
+
+
+def main(argv=None) -> int:
+    import os
 
     argv = sys.argv[1:] if argv is None else argv
     base = Path(argv[0])
+    if "--print" in argv:                       # one case set's digests as one JSON line (portable_digests)
+        if any(os.environ.get(k) != v for k, v in PORTABLE_ENV.items()):
+            raise SystemExit("replay_golden.py --print runs in PORTABLE_ENV (use portable_digests)")
+        print(json.dumps(_digests(base, argv[argv.index("--print") + 1])))
+        return 0
+    if "--record" not in argv:
+        raise SystemExit("usage: replay_golden.py BASE_FOLDER --record --commit SHA")
     commit = argv[argv.index("--commit") + 1] if "--commit" in argv else "unknown"   # the code that recorded
-    if "--digest-only" in argv:        # the output folders are already there (written by the recorded commit)
-        golden = {"commit": commit,
-                  "cases": {c[0]: output_digests(base / "out" / c[0]) for c in CASES},
-                  "heavy_cases": {c[0]: output_digests(base / "out_heavy" / c[0]) for c in HEAVY_CASES}}
-    else:
-        golden = {"commit": commit,
-                  "cases": replay_digests(tiny_map(base), base, base / "out", CASES),
-                  "heavy_cases": replay_digests(golden_map(base), base, base / "out_heavy", HEAVY_CASES)}
+    golden = {"commit": commit, "environment": PORTABLE_ENV,
+              "cases": portable_digests(base, "cases"), "heavy_cases": portable_digests(base, "heavy_cases")}
     GOLDEN.parent.mkdir(exist_ok=True)
     GOLDEN.write_text(json.dumps(golden, indent=2) + "\n")
     print(json.dumps(golden, indent=2))

@@ -1,5 +1,5 @@
-"""The online localiser (``scenesig.Session``): the replay's outputs byte-identical to main's before the
-replay became a driver over it (golden digests, ``tests/replay_golden.py``), a run fed frame by frame
+"""The online localiser (``scenesig.Session``): the replay's outputs byte-identical to the recorded ones
+(golden digests made in a pinned numerical environment, ``tests/replay_golden.py``), a run fed frame by frame
 through the public API equal to the replay, the time rules, the inputs it refuses, and the docs' example.
 
 On the tiny simulated world of ``tests/build_world.py``.
@@ -7,20 +7,23 @@ On the tiny simulated world of ``tests/build_world.py``.
 from __future__ import annotations
 
 import json
+import platform
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
-from replay_golden import CASES, GOLDEN, HEAVY_CASES, golden_map, replay_digests
+from replay_golden import GOLDEN, portable_digests
 
 pytest.importorskip("scenesig.surveys.sim.simulate")
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _base(tmp_path_factory) -> Path:
-    return tmp_path_factory.getbasetemp()
+def _x86_64() -> None:
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        pytest.skip(f"the golden digests are made with x86-64's baseline kernels (tests/replay_golden.py); "
+                    f"this machine is {platform.machine()}")
 
 
 def _check_golden(got: dict, expected: dict, golden_commit: str) -> None:
@@ -29,21 +32,21 @@ def _check_golden(got: dict, expected: dict, golden_commit: str) -> None:
     assert not bad, f"outputs differ from the recording commit's ({golden_commit}): {bad}"
 
 
-def test_replay_outputs_are_mains(tiny_world, tmp_path, tmp_path_factory):
-    """localise on the tiny world, every method its map has, with and without INS/GPS: the recorded bytes."""
-    runs, root = tiny_world
+def test_replay_outputs_are_mains(tmp_path):
+    """localise on the tiny world, every method its map has, with and without INS/GPS: the recorded bytes
+    (the world simulated, mapped and localised from nothing in the pinned numerical environment)."""
+    _x86_64()
     golden = json.loads(GOLDEN.read_text())
-    _check_golden(replay_digests(root, _base(tmp_path_factory), tmp_path, CASES), golden["cases"], golden["commit"])
+    _check_golden(portable_digests(tmp_path, "cases"), golden["cases"], golden["commit"])
 
 
 @pytest.mark.heavy
-def test_replay_outputs_are_mains_point_layers(tiny_world, tmp_path, tmp_path_factory, xfeat_model, monkeypatch):
-    """The same for sift, sift-all, hybrid, hybrid-sift-all and xfeat-all (a map with those layers: ~1 min)."""
+def test_replay_outputs_are_mains_point_layers(tmp_path, xfeat_model, monkeypatch):
+    """The same for sift, sift-all, hybrid, hybrid-sift-all and xfeat-all (a map with those layers: ~2 min)."""
+    _x86_64()
     monkeypatch.setenv("SCENESIG_XFEAT_MODEL", str(xfeat_model))
-    base = _base(tmp_path_factory)
     golden = json.loads(GOLDEN.read_text())
-    _check_golden(replay_digests(golden_map(base), base, tmp_path, HEAVY_CASES), golden["heavy_cases"],
-                  golden["commit"])
+    _check_golden(portable_digests(tmp_path, "heavy_cases"), golden["heavy_cases"], golden["commit"])
 
 
 def _feed(session, run, every: int, gray: bool = True):

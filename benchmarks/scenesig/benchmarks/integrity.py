@@ -445,6 +445,7 @@ def _camera_section(rows: list[dict]) -> dict:
 
 def main(argv=None) -> int:
     from scenesig.benchmarks._stages import emit_json
+    from scenesig.localiser.integrity import default_config as design
 
     p = argparse.ArgumentParser(prog="scenesig bench integrity", description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", required=True, help="worlds: A-B (inclusive), or a comma list; at least two")
@@ -470,8 +471,11 @@ def main(argv=None) -> int:
                    help="also measure the camera check on every live run with its focal lengths as given, halved "
                         "and doubled, and judge it over a grid of min_inliers (with --calibrate --choose: choose "
                         "min_inliers)")
-    p.add_argument("--alpha", type=float, default=0.01, help="designed P(wrong map's fix accepted) per probation")
-    p.add_argument("--beta", type=float, default=0.01, help="designed P(right map's fix refused) per probation")
+    p.add_argument("--alpha", type=float, default=design["sprt_alpha"],
+                   help=f"designed P(wrong map's fix accepted) per probation (default {design['sprt_alpha']}, the "
+                        "monitor's)")
+    p.add_argument("--beta", type=float, default=design["sprt_beta"],
+                   help=f"designed P(right map's fix refused) per probation (default {design['sprt_beta']})")
     p.add_argument("--json", default=None, help="also write the JSON here")
     a = p.parse_args(argv)
     try:
