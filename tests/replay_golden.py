@@ -48,7 +48,8 @@ PORTABLE_ENV = {
 }
 # Measured on an AVX2 CPU, each left native alone: OpenBLAS's kernel, OpenCV's loops and libm's variants each
 # changed the digests (32, 24 and 27 of 48); numpy's loops, the thread counts, IPP and numba's target did not
-# there (they may on a CPU with AVX-512).
+# there (they may on a CPU with AVX-512).  onnxruntime's kernels (XFeat: the heavy cases' xfeat-all only) have
+# no such switch, so those two digests may still differ on a CPU with other vector units.
 
 #: (case name, run's condition, method, oracle, every) replayed on the default tiny map (layers signatures,
 #: orb, orb-all): the night run fails and alerts often (the failure rule, the integrity monitor), the
