@@ -29,7 +29,8 @@ def _x86_64() -> None:
 def _check_golden(got: dict, expected: dict, golden_commit: str) -> None:
     bad = {case: [f for f in got[case] if got[case][f] != expected[case][f]] for case in got}
     bad = {k: v for k, v in bad.items() if v}
-    assert not bad, f"outputs differ from the recording commit's ({golden_commit}): {bad}"
+    assert not bad, (f"outputs differ from the recording commit's ({golden_commit}): {bad}; if the change of "
+                     f"results is intended, regenerate the digests as tests/replay_golden.py says")
 
 
 def test_replay_outputs_are_mains(tmp_path):
