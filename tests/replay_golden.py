@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -121,9 +123,6 @@ def tiny_run(base: Path, condition: str):
 def portable_digests(base: Path, which: str) -> dict:
     """The digests of the cases ``which`` (``"cases"`` or ``"heavy_cases"``), made from nothing under
     ``base`` by a process of their own in :data:`PORTABLE_ENV`."""
-    import os
-    import subprocess
-
     proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), str(base), "--print", which],
                           env={**os.environ, **PORTABLE_ENV}, capture_output=True, text=True)
     if proc.returncode != 0:
@@ -143,8 +142,6 @@ def _digests(base: Path, which: str) -> dict:
 
 
 def main(argv=None) -> int:
-    import os
-
     argv = sys.argv[1:] if argv is None else argv
     base = Path(argv[0])
     if "--print" in argv:                       # one case set's digests as one JSON line (portable_digests)
