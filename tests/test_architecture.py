@@ -1,10 +1,10 @@
 """The layout and the import contract (pyproject.toml, docs/architecture.md "Layout"): one import identity per
 file, no links, ``lint-imports`` passes and no layer imports itself in a cycle.
 
-Each layer folder is a source root of the ``scenesig`` package (``mapping/scenesig/mapping/build.py`` is
-``scenesig.mapping.build``); the application layer's root is the repository itself.  In the checkout
-``scenesig/__init__.py`` appends the layer roots to its ``__path__`` (and so to its spec, which grimp reads):
-``.ci/lint imports`` imports the package, then runs ``lint-imports``.
+Each folder of the design card is a source root of the ``scenesig`` package (``mapping/scenesig/mapping/build.py``
+is ``scenesig.mapping.build``, ``scenesig/scenesig/api.py`` is ``scenesig.api``).  The editable install links
+every file into one package folder (``build/__editable__.*/scenesig``), which Python and a bare ``lint-imports``
+both read.
 """
 import json
 import os
@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+APP_ROOT = ROOT / "scenesig"                 # the application layer's source root
 
 
 def _pyproject() -> dict:
@@ -29,8 +30,8 @@ def _package_dirs() -> dict[str, str]:
 def _app_modules() -> set[str]:
     """The application layer: scenesig's own modules and subpackages (everything but the mapped layers)."""
     layers = {name.split(".", 1)[1] for name in _package_dirs() if "." in name}
-    own = {p.stem for p in (ROOT / "scenesig").glob("*.py") if p.stem not in {"__init__", "__main__"}}
-    own |= {p.parent.name for p in (ROOT / "scenesig").glob("*/__init__.py")}
+    own = {p.stem for p in (APP_ROOT / "scenesig").glob("*.py") if p.stem not in {"__init__", "__main__"}}
+    own |= {p.parent.name for p in (APP_ROOT / "scenesig").glob("*/__init__.py")}
     return own - layers
 
 
@@ -41,25 +42,25 @@ def _layer_roots() -> dict[str, Path]:
 
 
 def test_every_layer_folder_is_a_source_root_installed_under_scenesig():
-    """A top-level folder holding ``scenesig/<layer>/`` must be mapped as ``<layer>/scenesig/<layer>``; no
-    top-level folder but the application layer's is itself a package (it would be a second import name)."""
+    """A top-level folder holding ``scenesig/<layer>/`` must be mapped as ``<layer>/scenesig/<layer>``, the
+    application layer as ``scenesig/scenesig``; no top-level folder is itself a package (it would be a second
+    import name, and would hide the installed package from the repository root)."""
     dirs = _package_dirs()
+    assert dirs["scenesig"] == "scenesig/scenesig"
     for folder in sorted({p.relative_to(ROOT).parts[0] for p in ROOT.glob("*/scenesig/*/__init__.py")} - {"scenesig"}):
         assert dirs.get(f"scenesig.{folder}") == f"{folder}/scenesig/{folder}", \
             f'map "scenesig.{folder}" = "{folder}/scenesig/{folder}" in [tool.setuptools.package-dir]'
     stray = sorted(p.parent.name for p in ROOT.glob("*/__init__.py"))
-    assert stray == ["scenesig"], f"folders importable under their own name from the checkout: {stray}"
-    import scenesig
-
-    assert set(_layer_roots()) == set(scenesig._LAYERS), "scenesig/__init__.py's _LAYERS and package-dir differ"
+    assert stray == [], f"folders importable under their own name from the checkout: {stray}"
 
 
 def test_no_module_outside_its_source_root():
     """A module left in a layer folder's old place (``localiser/session.py``) is not importable as
     ``scenesig.localiser.session``: move it under ``localiser/scenesig/localiser/`` (``git mv``)."""
-    stray = sorted(str(p.relative_to(ROOT)) for layer, root in _layer_roots().items() for p in root.rglob("*")
-                   if p.is_file() and "__pycache__" not in p.parts
-                   and not p.is_relative_to(root / "scenesig" / layer))
+    packages = {root: root / "scenesig" / layer for layer, root in _layer_roots().items()}
+    packages[APP_ROOT] = APP_ROOT / "scenesig"
+    stray = sorted(str(p.relative_to(ROOT)) for root, package in packages.items() for p in root.rglob("*")
+                   if p.is_file() and "__pycache__" not in p.parts and not p.is_relative_to(package))
     assert not stray, f"files outside their layer's source root (<layer>/scenesig/<layer>/): {stray}"
 
 
@@ -99,13 +100,16 @@ print(json.dumps({"files": out, "importable": bad}))
     roots = _layer_roots()
     for name, file in got["files"].items():
         parts = name.split(".")
-        root = roots.get(parts[1], ROOT) if len(parts) > 1 else ROOT
+        root = roots.get(parts[1], APP_ROOT) if len(parts) > 1 else APP_ROOT
         rel = Path(file).resolve().relative_to(root)
         expected = Path(*parts, "__init__.py") if rel.name == "__init__.py" else Path(*parts).with_suffix(".py")
         assert rel == expected, f"{name} is {file}, not {root / expected}"
-    on_disk = {p.resolve() for root in {ROOT / "scenesig", *(r / "scenesig" for r in _layer_roots().values())}
-               for p in root.rglob("*.py") if p.name != "__main__.py"}
-    assert {Path(f).resolve() for f in got["files"].values()} == on_disk
+    on_disk = {p.resolve() for root in {APP_ROOT, *_layer_roots().values()}
+               for p in (root / "scenesig").rglob("*.py") if p.name != "__main__.py"}
+    found = {Path(f).resolve() for f in got["files"].values()}
+    assert not on_disk - found, (f"modules of the checkout the installed package lacks (a new file: run "
+                                 f"`pip install -e .` again to link it): {sorted(map(str, on_disk - found))}")
+    assert not found - on_disk, f"modules imported from outside the checkout: {sorted(map(str, found - on_disk))}"
 
 
 def test_every_application_module_is_forbidden_to_the_layers():
@@ -117,9 +121,9 @@ def test_every_application_module_is_forbidden_to_the_layers():
 
 
 def test_lint_imports_passes():
-    """``.ci/lint imports``: the contract, over every layer (grimp sees them all: as many files as before the
-    relayout, not just the application layer's)."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}   # this checkout, not an installed copy
+    """``.ci/lint imports`` (a bare ``lint-imports``): the contract, over every layer (grimp sees them all, not
+    just the application layer's)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}   # what a user's shell has
     proc = subprocess.run(["bash", str(ROOT / ".ci" / "lint"), "imports"], cwd=ROOT, capture_output=True,
                           text=True, timeout=300, env=env)
     assert proc.returncode == 0 and " 0 broken" in proc.stdout, proc.stdout[-4000:] + proc.stderr[-2000:]
@@ -129,8 +133,6 @@ def test_lint_imports_passes():
 
 def _graph():
     grimp = pytest.importorskip("grimp", reason="grimp comes with import-linter (the test extras)")
-    import scenesig  # noqa: F401  -- appends the layer roots to the package's spec, which grimp reads
-
     return grimp.build_graph("scenesig", cache_dir=None)
 
 
@@ -198,7 +200,7 @@ def test_architecture_doc_names_every_module_and_benchmark():
     doc = (root / "docs" / "architecture.md").read_text(encoding="utf-8")
     missing = []
     folders = {layer: root / layer / "scenesig" / layer for layer in _layer_roots() if layer != "benchmarks"}
-    for pkg, folder in {**folders, "scenesig": root / "scenesig"}.items():
+    for pkg, folder in {**folders, "scenesig": APP_ROOT / "scenesig"}.items():
         for path in sorted(folder.rglob("*.py")):
             rel = path.relative_to(folder)
             if path.name in ("__init__.py", "__main__.py"):

@@ -37,21 +37,27 @@ def _checkout_modules() -> list[str]:
 
 def test_editable_install_imports_the_checkout(tmp_path):
     """``pip install -e .`` in a fresh environment: the package and every layer come from this checkout's
-    files (each layer from its folder's source root), and the console script runs."""
+    files (each layer from its folder's source root, through the links of the editable install's one package
+    folder), a bare ``lint-imports`` sees every layer, and the console script runs."""
     env_dir = tmp_path / "venv"
     venv.create(env_dir, system_site_packages=True, with_pip=True)
     py = env_dir / "bin" / "python"
     proc = _run([str(py), "-m", "pip", "install", "-q", "--no-deps", "-e", str(ROOT)], cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    code = ("import scenesig, scenesig.mapping.store as s, scenesig.surveys.importers.kitti_raw as k; "
-            "assert callable(scenesig.build_map); print(scenesig.__file__); print(s.__file__); print(k.__file__)")
-    proc = _run([str(py), "-c", code], cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert proc.stdout.split() == [str(ROOT / "scenesig" / "__init__.py"),
+    code = ("import pathlib, scenesig, scenesig.mapping.store as s, scenesig.surveys.importers.kitti_raw as k; "
+            "assert callable(scenesig.build_map) and len(scenesig.__path__) == 1; "
+            "[print(pathlib.Path(m.__file__).resolve()) for m in (scenesig, s, k)]")
+    for cwd in (tmp_path, ROOT):              # the repository root's scenesig/ folder does not hide it
+        proc = _run([str(py), "-c", code], cwd=cwd)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == [str(ROOT / "scenesig" / "scenesig" / "__init__.py"),
                                    str(ROOT / "mapping" / "scenesig" / "mapping" / "store.py"),
                                    str(ROOT / "surveys" / "scenesig" / "surveys" / "importers" / "kitti_raw.py")]
     proc = _run([str(env_dir / "bin" / "scenesig"), "config", "show"], cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
+    lint = "import sys; from importlinter.cli import lint_imports_command as c; sys.argv[1:] = ['--no-cache']; c()"
+    proc = _run([str(py), "-c", lint], cwd=ROOT)
+    assert proc.returncode == 0 and " 0 broken" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-2000:]
 
 
 def test_every_package_folder_is_listed():

@@ -291,4 +291,4 @@ def test_only_the_node_module_imports_rclpy():
                     [node.module or ""] if isinstance(node, ast.ImportFrom) else []
                 if any(n == "rclpy" or n.startswith("rclpy.") for n in names):
                     offenders.append(str(path.relative_to(ROOT)))
-    assert sorted(set(offenders)) == ["scenesig/ros2_node.py"]
+    assert sorted(set(offenders)) == ["scenesig/scenesig/ros2_node.py"]

@@ -14,21 +14,7 @@ package; see ``docs/architecture.md`` and ``docs/api.md``.
 """
 from __future__ import annotations
 
-from pathlib import Path as _Path
-
 __all__ = ["build_map", "localise", "compare", "Map", "Session"]
-
-# Each library layer is a source root of this package in the checkout (``mapping/scenesig/mapping/build.py``
-# is ``scenesig.mapping.build``; the application layer's root is the repository itself).  Installed from a
-# wheel every subpackage sits in this folder and nothing is added; in the checkout (``python -m scenesig``,
-# pytest, an editable install) the layer roots are appended to ``__path__`` in place, so that the package's
-# spec (what grimp and ``importlib.util.find_spec`` read) lists them too.
-_LAYERS = ("surveys", "signatures", "mapping", "localiser", "aerial", "benchmarks")
-_CHECKOUT = _Path(__file__).resolve().parent.parent
-if (_CHECKOUT / "pyproject.toml").is_file():
-    __path__.extend(str(_CHECKOUT / layer / "scenesig") for layer in _LAYERS
-                    if (_CHECKOUT / layer / "scenesig" / layer / "__init__.py").is_file()
-                    and str(_CHECKOUT / layer / "scenesig") not in __path__)
 
 
 def __getattr__(name):
