@@ -96,6 +96,34 @@ def test_a_place_counts_once_however_long_the_vehicle_stands_there():
     assert "alert" in [m.assess(_frame(rng, 8 + 0.2 * i, 4 + i, OTHER)) for i in range(6)]
 
 
+def test_places_are_counted_in_odometry_not_in_estimated_places():
+    """A wrong map's estimate can cross place boundaries while the vehicle creeps: with the odometry recorded,
+    neither the evidence nor the probation's places count a new place until a place spacing has been driven."""
+    rng = np.random.default_rng(5)
+    rates = {p: (OWN, OTHER) for p in range(100)}
+    unit = IntegrityMonitor(DESIGN, firing=rates).config["sprt_unit_m"]
+
+    def frame(i, place, odometry_m):
+        k = int(rng.binomial(SEARCHED, _p1()))
+        return FrameStats(0.2 * i, place, k, k, SEARCHED, True, np.nan, 1.0, np.nan, np.nan, odometry_m)
+
+    # creeping 0.05 m a frame while the estimate walks a place every frame: 40 frames, 2 m, one unit
+    m = IntegrityMonitor(DESIGN, firing=rates)
+    m.begin_probation(0.0)
+    assert {m.assess(frame(i, 3 + i, 100.0 + 0.05 * i)) for i in range(40)} == {"tentative"}
+    assert m._llr < 2 * m._llr_of(3, _p1() * SEARCHED, SEARCHED)
+    # the same firing while driving a place spacing every 5 frames: accepted once a spacing has been driven
+    m = IntegrityMonitor(DESIGN, firing=rates)
+    m.begin_probation(0.0)
+    verdicts = [m.assess(frame(i, 3, 100.0 + unit / 5 * i)) for i in range(40)]
+    first = verdicts.index("accept")
+    assert set(verdicts[:first]) == {"tentative"} and first >= 5
+    # without odometry (older recordings) the estimated place keys both, as before
+    m = IntegrityMonitor(DESIGN, firing=rates)
+    m.begin_probation(0.0)
+    assert "accept" in [m.assess(_frame(rng, 0.2 * i, 3 + i, _p1())) for i in range(40)]
+
+
 def test_a_frame_without_a_pose_counts_its_inliers_not_its_detections():
     """Detections the solver's geometry rejected are no evidence for the map: a look-alike's windows fill with
     chance responses (up to every signature searched) that no pose explains.  The rates in firing.json count

@@ -645,7 +645,7 @@ def _choose(streams: list[dict], alpha: float, beta: float) -> dict:
     base = {**chosen, "sprt_alpha": alpha, "sprt_beta": beta}
     grid = []
     for kappa, gamma, phi, h, frames, places in itertools.product(
-            (1.0, 2.0, 3.0, 4.0), (0.4, 0.6, 0.8), (1.0, 2.0, 4.0), (8.0, 16.0, 32.0), (6, 12), (2, 3)):
+            (1.0, 2.0, 3.0, 4.0), (0.4, 0.6, 0.8), (1.0, 2.0, 4.0), (8.0, 16.0, 32.0), (6, 12), (2, 3, 4)):
         cfg = {**base, "sprt_other_factor": kappa, "sprt_own_fraction": gamma, "sprt_dispersion": phi,
                "cusum_h": h, "sprt_probation_frames": frames, "sprt_probation_places": places}
         r = [run_outcome(s["stats"], s["rates"], cfg) for s in right]

@@ -41,8 +41,8 @@ in ``metrics.json`` counts them, ``frames.csv``'s ``integrity_alert`` marks the 
 **The sequential test.**  Where the map carries its places' firing rates (:mod:`scenesig.localiser.firing`)
 the two support thresholds give way to Wald's sequential probability ratio test in probation (accept at
 ``log((1-β)/α)``, alert at ``log(β/(1-α))``) and Page's CUSUM while tracking, on the evidence each place's
-signatures give (one Bernoulli draw per signature searched; a place counts once); maps without rates keep
-the thresholds.
+signatures give (one Bernoulli draw per signature searched; each place spacing of odometry counts once, and
+the probation's places are place spacings of odometry too); maps without rates keep the thresholds.
 
 Thresholds and the data that chose them: ``docs/integrity.md``, "Integrity monitoring".
 """
@@ -85,6 +85,11 @@ default_config = {
     "sprt_max_nis": 39.0,
     "sprt_probation_frames": 12,
     "sprt_probation_places": 2,
+    # One unit of evidence (and one "place" of the probation) per this much odometry: the map's place
+    # spacing (McManus et al. 2015, §4.1).  Keyed on the odometry, not on the place the estimate is at, so a
+    # vehicle that stands or creeps in front of a look-alike adds no new evidence however often the
+    # estimate crosses a place boundary; frames recorded without odometry fall back to the estimated place.
+    "sprt_unit_m": 10.0,
     "probation_max_frames": 30,    # a probation the test has not decided by then ends with an alert
     # Maps without firing rates (built before them): every threshold below was chosen on development runs
     # that are not reported, for issue 25 (docs/integrity.md,
@@ -117,6 +122,7 @@ class FrameStats:
     residual_dof: float    # 2 n_inliers - 6
     nis: float             # innovation of the detections-only pose against the prediction
     innovation_m: float    # its planar size (m)
+    odometry_m: float = np.nan  # the odometry's distance travelled since the run began (m; NaN: unknown)
 
 
 @dataclass
@@ -132,9 +138,9 @@ class Alert:
         return asdict(self)
 
 
-def frame_stats(t: float, place: int, prior, m) -> FrameStats:
+def frame_stats(t: float, place: int, prior, m, odometry_m: float = np.nan) -> FrameStats:
     """:class:`FrameStats` of a measurement ``m`` (:class:`scenesig.localiser.methods.Measurement`) made with the
-    motion prior ``prior`` (:class:`scenesig.localiser.methods.MotionPrior`)."""
+    motion prior ``prior`` (:class:`scenesig.localiser.methods.MotionPrior`), ``odometry_m`` into the run."""
     c = m.constraint
     ex = m.extra or {}
     searched = int(ex.get("searched", 0) or 0)
@@ -155,7 +161,7 @@ def frame_stats(t: float, place: int, prior, m) -> FrameStats:
             nis = np.inf
         inn = float(np.linalg.norm(nu[3:5]))
     return FrameStats(float(t), int(place), int(m.detections), int(m.inliers), searched, c is not None, r2, dof,
-                      nis, inn)
+                      nis, inn, float(odometry_m))
 
 
 class IntegrityMonitor:
@@ -175,10 +181,13 @@ class IntegrityMonitor:
     """
 
     # the sequential test's evidence (:meth:`_reset_evidence`): committed log-likelihood ratio and CUSUM, and
-    # the place being observed with its firing counts
+    # the unit being observed (where it began: odometry and place) with its frames' summed evidence
     _llr_committed: float
     _cusum_committed: float
     _ev_place: int | None
+    _ev_from: float
+    _ev_llr: float
+    _ev_frames: int
 
     def __init__(self, config: dict | None = None, method: str = "signatures", t0: float = 0.0,
                  firing: dict | None = None):
@@ -265,30 +274,48 @@ class IntegrityMonitor:
     def _observe(self, f: FrameStats) -> None:
         """Add a frame to the evidence.  The Bernoulli draws are the place's signatures, not the frames: a
         vehicle standing at a crossing sees the same image for seconds, and successive frames of one place
-        run the same classifiers on nearly the same view.  So each place counts once, with the mean share of
-        its signatures that fired over the frames seen there.  "Fired" is the solver's inliers, also on a frame
-        whose pose the solver rejected (and none on a frame with too few detections for eq. 10): detections the
-        geometry did not confirm are not evidence for the map -- a tracked false fix's windows fill with
-        chance responses (up to all of the signatures searched) that no pose explains."""
+        run the same classifiers on nearly the same view.  So each unit of ``sprt_unit_m`` of odometry (a place
+        spacing) counts once, with the mean of its frames' evidence (each frame at its place's rates).  The
+        unit is keyed on the odometry, not on the estimated place: a wrong map's estimate can cross a place
+        boundary while the vehicle creeps a metre, and that is not a second place's confirmation.  "Fired" is
+        the solver's inliers, also on a frame whose pose the solver rejected (and none on a frame with too few
+        detections for eq. 10): detections the geometry did not confirm are not evidence for the map -- a
+        tracked false fix's windows fill with chance responses (up to all of the signatures searched) that no
+        pose explains."""
         if f.searched <= 0:
             return
-        if f.place != self._ev_place:
-            place_llr = self._current_llr()
-            self._llr_committed += place_llr
-            self._cusum_committed = max(0.0, self._cusum_committed - place_llr)
-            self._ev_place, self._ev_k, self._ev_n, self._ev_frames = f.place, 0.0, 0.0, 0
-        self._ev_k += float(f.inliers)
-        self._ev_n += float(f.searched)
+        if self._new_unit(f):
+            unit_llr = self._current_llr()
+            self._llr_committed += unit_llr
+            self._cusum_committed = max(0.0, self._cusum_committed - unit_llr)
+            self._ev_place, self._ev_from, self._ev_llr, self._ev_frames = f.place, f.odometry_m, 0.0, 0
+        self._ev_llr += self._llr_of(f.place, float(f.inliers), float(f.searched))
         self._ev_frames += 1
 
-    def _current_llr(self) -> float:
+    def _new_unit(self, f: FrameStats) -> bool:
+        """Whether ``f`` begins a new unit of evidence: a place spacing of odometry since the current one
+        began, or, for frames recorded without odometry, another estimated place."""
         if not self._ev_frames:
-            return 0.0
-        return self._llr_of(self._ev_place, self._ev_k / self._ev_frames, self._ev_n / self._ev_frames)
+            return True
+        if np.isfinite(f.odometry_m) and np.isfinite(self._ev_from):
+            return f.odometry_m - self._ev_from >= self.config["sprt_unit_m"]
+        return f.place != self._ev_place
+
+    def _places(self, frames) -> int:
+        """How many places a probation's frames count for: the units of ``sprt_unit_m`` their odometry spans
+        (1 + the whole spacings travelled), or, without odometry, the distinct estimated places."""
+        d = np.array([f.odometry_m for f in frames], float)
+        # maps without firing rates keep the estimated places their thresholds were chosen with
+        if self.rates is not None and d.size and np.isfinite(d).all():
+            return 1 + int((d.max() - d.min()) // self.config["sprt_unit_m"])
+        return len({f.place for f in frames})
+
+    def _current_llr(self) -> float:
+        return self._ev_llr / self._ev_frames if self._ev_frames else 0.0
 
     def _reset_evidence(self) -> None:
         self._llr_committed = self._cusum_committed = 0.0
-        self._ev_place, self._ev_k, self._ev_n, self._ev_frames = None, 0.0, 0.0, 0
+        self._ev_place, self._ev_from, self._ev_llr, self._ev_frames = None, np.nan, 0.0, 0
 
     @property
     def _llr(self) -> float:
@@ -317,7 +344,7 @@ class IntegrityMonitor:
         if self._search_alerted or far <= self.config["max_search_m"]:
             return False
         self._search_alerted = True
-        self._alert(FrameStats(float(t), int(place), 0, 0, 0, False, np.nan, 1.0, np.nan, np.nan),
+        self._alert(FrameStats(float(t), int(place), 0, 0, 0, False, np.nan, 1.0, np.nan, np.nan, float(distance_m)),
                     [f"searched {far:.0f} m ({self._search_frames} frames) without a place its images and the "
                      f"odometry agree on ({self._search_verified} single-frame verifications, none confirmed)"], 0)
         return True
@@ -354,7 +381,7 @@ class IntegrityMonitor:
                                    len(self._probation))
             why = self.failing(solved[-int(cfg["window"]):])        # residuals, innovations: as tracking
             done = (len(solved) >= self.th["probation_frames"]
-                    and len({f.place for f in solved}) >= self.th["probation_places"])
+                    and self._places(solved) >= self.th["probation_places"])
             support = self._support(self._probation)
             if self.rates is not None:                               # Wald's SPRT
                 self._observe(stats)

@@ -462,7 +462,7 @@ class Session:
             return loc.add_measurement(t, m)
         from .integrity import frame_stats
 
-        verdict = mon.assess(frame_stats(t, prior.place, prior, m))
+        verdict = mon.assess(frame_stats(t, prior.place, prior, m, loc.distance_at(t)))
         if verdict == "accept":
             self.probation_key = None
             return loc.add_measurement(t, m)
