@@ -1,5 +1,8 @@
 """``scenesig demo`` end to end on the tiny world: every stage runs, summary.json has docs/cli.md's schema,
-the report is written, and a re-run reuses what is there."""
+the report is written, and a re-run reuses what is there.
+
+The default suite runs the demo with the signatures and the hybrid (``--methods signatures,hybrid``: every
+stage, the signatures with and without INS/GPS, a point layer); the heavy checks run it with every method."""
 import json
 import os
 
@@ -26,20 +29,21 @@ def _has_xfeat():
     return XFEAT.is_file()
 
 
-#: the methods the demo runs here: xfeat-all only where ../shared/models has the model
+#: the methods the full demo runs here: xfeat-all only where ../shared/models has the model
 METHODS = [m for m in default_config["methods"] if _has_xfeat() or not m.startswith("xfeat")]
+#: the default suite's demo: the signatures (with and without INS/GPS) and the hybrid (signatures + SIFT)
+QUICK_METHODS = ["signatures", "hybrid"]
 
 
-@pytest.fixture(scope="module")
-def demo_out(tmp_path_factory):
-    out = tmp_path_factory.mktemp("demo")
+def _demo(out, methods=None):
     old = os.environ.get("SCENESIG_XFEAT_MODEL")
     if _has_xfeat():
         os.environ["SCENESIG_XFEAT_MODEL"] = str(XFEAT)
     else:
         os.environ["SCENESIG_XFEAT_MODEL"] = str(out / "no-model.onnx")     # the demo leaves xfeat out
     try:
-        assert main(["demo", "--preset", "tiny", "--out", str(out), "--jobs", "2"]) == 0
+        args = ["demo", "--preset", "tiny", "--out", str(out), "--jobs", "2"]
+        assert main(args + (["--methods", ",".join(methods)] if methods else [])) == 0
     finally:
         os.environ.pop("SCENESIG_XFEAT_MODEL")
         if old is not None:
@@ -47,23 +51,42 @@ def demo_out(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def demo_out(tmp_path_factory):
+    return _demo(tmp_path_factory.mktemp("demo"), QUICK_METHODS)
+
+
+@pytest.fixture(scope="module")
+def demo_full(tmp_path_factory):
+    return _demo(tmp_path_factory.mktemp("demo-full"))
+
+
 def test_summary_schema(demo_out):
-    s = json.loads((demo_out / "summary.json").read_text())
-    assert set(s) >= {"runs", "seconds", "localise_seconds_by_method"} and s["seconds"] > 0
+    _check_summary(demo_out, QUICK_METHODS)
+
+
+@pytest.mark.heavy
+def test_summary_schema_every_method(demo_full):
     # signatures, the four ORB/SIFT baselines (reference and all-runs point maps), XFeat's and the hybrid
     assert set(default_config["methods"]) == {"signatures", "orb", "sift", "orb-all", "sift-all", "xfeat-all",
                                               "hybrid"}
-    assert set(s["localise_seconds_by_method"]) == set(METHODS) | {
-        f"{m}-none" for m in default_config["no_oracle_methods"]}
+    _check_summary(demo_full, METHODS)
+
+
+def _check_summary(demo_out, methods):
+    from scenesig.mapping.layers import LAYERS, method_layers
+
+    s = json.loads((demo_out / "summary.json").read_text())
+    assert set(s) >= {"runs", "seconds", "localise_seconds_by_method"} and s["seconds"] > 0
+    entries = set(methods) | {f"{m}-none" for m in default_config["no_oracle_methods"]}
+    assert set(s["localise_seconds_by_method"]) == entries
     # the map holds the layers the demo runs, and no other
-    assert s["map"]["layers"] == [name for name in ("signatures", "orb", "sift", "xfeat", "orb-all", "sift-all",
-                                                    "xfeat-all") if name in METHODS]
+    assert s["map"]["layers"] == [name for name in LAYERS if any(name in method_layers(m) for m in methods)]
     assert set(s["map"]["bytes_per_place_by_layer_mean"]) >= set(s["map"]["layers"])
     assert set(s["map"]["seconds_per_place_by_layer_mean"]) == set(s["map"]["layers"])
     assert [r["conditions"] for r in s["runs"]] == [[c] for c in default_config["live"]]
     for r in s["runs"]:
-        assert set(r["methods"]) == set(METHODS) | {
-            f"{m}-none" for m in default_config["no_oracle_methods"]}
+        assert set(r["methods"]) == entries
         for name, m in r["methods"].items():
             assert METRIC_KEYS <= set(m), METRIC_KEYS - set(m)
             method = name.removesuffix("-none")
@@ -112,15 +135,17 @@ def test_rerun_reuses_outputs(demo_out, capsys, monkeypatch):
     before = {p: p.stat().st_mtime_ns for p in (demo_out / "world").rglob("frames.csv")}
     loc = demo_out / "localise" / "run06_night" / "signatures" / "metrics.json"
     loc_before = loc.read_bytes()
-    assert main(["demo", "--preset", "tiny", "--out", str(demo_out), "--jobs", "1"]) == 0
+    args = ["demo", "--preset", "tiny", "--out", str(demo_out), "--jobs", "1", "--methods", ",".join(QUICK_METHODS)]
+    assert main(args) == 0
     assert "reusing" in capsys.readouterr().out
     assert {p: p.stat().st_mtime_ns for p in (demo_out / "world").rglob("frames.csv")} == before
     assert loc.read_bytes() == loc_before
 
 
 @pytest.mark.heavy
-def test_lifelong_stage(demo_out):
+def test_lifelong_stage(demo_full):
     """``--lifelong`` after the demo: two unseen-condition runs, the update, before/after rows, the report section."""
+    demo_out = demo_full
     assert main(["demo", "--preset", "tiny", "--out", str(demo_out), "--lifelong"]) == 0
     res = json.loads((demo_out / "lifelong" / "day-night" / "result" / "lifelong.json").read_text())
     assert res["base"] == "day" and res["base_conditions"] == ["sunny", "overcast"]
@@ -156,11 +181,11 @@ def test_demo_localise_benchmark_refuses_to_write_into_the_demo(tmp_path):
 
 
 @pytest.mark.heavy
-def test_demo_localise_benchmark_repeats_the_demo(demo_out, tmp_path):
+def test_demo_localise_benchmark_repeats_the_demo(demo_full, tmp_path):
     """``bench demo_localise --compare`` on the demo: the same localisations, CPU and wall reported."""
     from scenesig.benchmarks.demo_localise import main
 
-    assert main([str(demo_out), "--out", str(tmp_path / "loc"), "--compare", "--json", str(tmp_path / "b.json")]) == 0
+    assert main([str(demo_full), "--out", str(tmp_path / "loc"), "--compare", "--json", str(tmp_path / "b.json")]) == 0
     res = json.loads((tmp_path / "b.json").read_text())
     assert res["identical_to_demo"] is True and res["different"] == []
     assert res["cpu_seconds"] > 0 and res["wall_seconds"] > 0 and res["matching_places"] > 0
