@@ -73,18 +73,17 @@ default_config = {
     "sprt_alpha": 0.001,           # designed P(a fix on a map that does not explain the run is accepted):
                                    # from the target, at most ~0.11 % per probation (docs/integrity.md)
     "sprt_beta": 0.01,             # designed P(a right map's fix is refused in probation)
-    "sprt_other_factor": 2.0,      # H0's rate: this x other (a tracked false fix draws its windows onto
-                                   # chance firings, which a fixed prior at build time does not)
+    "sprt_other_factor": 1.0,      # H0's rate: this x other (the map's own measure of chance firing)
     "sprt_own_fraction": 0.8,      # H1's rate: H0's + this x (own - H0's) (unseen conditions fire less)
-    "sprt_dispersion": 4.0,        # the log-likelihood ratio is divided by this (signatures fire together)
+    "sprt_dispersion": 2.0,        # the log-likelihood ratio is divided by this (signatures fire together)
     "cusum_h": 32.0,               # tracking alert when Page's CUSUM of -LLR reaches this (ARL >= e^h places)
     # with the sequential test, the backstop tests and the probation's minimum chosen with it (on the
-    # calibration worlds, docs/integrity.md "Calibrated on many worlds"); the keys below without "sprt_"
-    # apply to maps without firing rates
+    # calibration worlds, docs/integrity.md "Calibrated on many worlds"; the probation's 3 places are at least
+    # 20 m of odometry); the keys below without "sprt_" apply to maps without firing rates
     "sprt_max_residual": 13.0,
     "sprt_max_nis": 39.0,
-    "sprt_probation_frames": 12,
-    "sprt_probation_places": 2,
+    "sprt_probation_frames": 6,
+    "sprt_probation_places": 3,
     # One unit of evidence (and one "place" of the probation) per this much odometry: the map's place
     # spacing (McManus et al. 2015, §4.1).  Keyed on the odometry, not on the place the estimate is at, so a
     # vehicle that stands or creeps in front of a look-alike adds no new evidence however often the
