@@ -4,7 +4,6 @@ the report is written, and a re-run reuses what is there.
 The default suite runs the demo with the signatures and the hybrid (``--methods signatures,hybrid``: every
 stage, the signatures with and without INS/GPS, a point layer); the heavy checks run it with every method."""
 import json
-import os
 
 import pytest
 from conftest import SHARED_MODELS
@@ -35,19 +34,16 @@ METHODS = [m for m in default_config["methods"] if _has_xfeat() or not m.startsw
 QUICK_METHODS = ["signatures", "hybrid"]
 
 
+def _xfeat_model(out):
+    """The model the demo is given: the shared one, or a missing file (the demo then leaves xfeat out)."""
+    return str(XFEAT if _has_xfeat() else out / "no-model.onnx")
+
+
 def _demo(out, methods=None):
-    old = os.environ.get("SCENESIG_XFEAT_MODEL")
-    if _has_xfeat():
-        os.environ["SCENESIG_XFEAT_MODEL"] = str(XFEAT)
-    else:
-        os.environ["SCENESIG_XFEAT_MODEL"] = str(out / "no-model.onnx")     # the demo leaves xfeat out
-    try:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("SCENESIG_XFEAT_MODEL", _xfeat_model(out))
         args = ["demo", "--preset", "tiny", "--out", str(out), "--jobs", "2"]
         assert main(args + (["--methods", ",".join(methods)] if methods else [])) == 0
-    finally:
-        os.environ.pop("SCENESIG_XFEAT_MODEL")
-        if old is not None:
-            os.environ["SCENESIG_XFEAT_MODEL"] = old
     return out
 
 
@@ -131,7 +127,7 @@ def test_report_and_matching_written(demo_out):
 
 
 def test_rerun_reuses_outputs(demo_out, capsys, monkeypatch):
-    monkeypatch.setenv("SCENESIG_XFEAT_MODEL", str(XFEAT if _has_xfeat() else demo_out / "no-model.onnx"))
+    monkeypatch.setenv("SCENESIG_XFEAT_MODEL", _xfeat_model(demo_out))
     before = {p: p.stat().st_mtime_ns for p in (demo_out / "world").rglob("frames.csv")}
     loc = demo_out / "localise" / "run06_night" / "signatures" / "metrics.json"
     loc_before = loc.read_bytes()
