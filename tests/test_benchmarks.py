@@ -364,9 +364,12 @@ def test_integrity_calibrate(tmp_path, capsys, tiny_world):
     _integrity_layout(tmp_path, tiny_world)
     doc = _run("integrity", ["--seeds", "1-2", "--calibrate", "--choose", "--preset", "tiny", "--camera-hz", "4",
                              "--cache", tmp_path / "cache", "--json", tmp_path / "c.json"], capsys, tmp_path / "c.json")
-    assert {"sprt_other_factor", "cusum_h"} <= set(doc["choice"]["chosen"])
+    assert {"sprt_other_factor", "cusum_h", "sprt_confirming_place"} <= set(doc["choice"]["chosen"])
     assert all((w / "integrity_stats.json").exists()
                for w in (tmp_path / "cache" / "tiny-4hz" / "seed1").glob("loc-calibrate*/run*"))
+    # every wrong-map run also localised live, with the defaults, and read by the rule beside the monitor-off ones
+    assert all(len(w["live_wrong_runs"]) == sum(r["kind"] == "wrong" for r in w["runs"]) == 2 for w in doc["worlds"])
+    assert doc["choice"]["wrong_live_runs"] == doc["choice"]["wrong_runs"] == 4
     # the tiny map localises nothing without INS/GPS: no bound model is made up from no data (the rule on
     # synthetic runs: tests/test_integrity_sprt.py)
     assert doc["choice"]["inflation"] == {"k": None, "grid": []}

@@ -124,6 +124,36 @@ def test_places_are_counted_in_odometry_not_in_estimated_places():
     assert "accept" in [m.assess(_frame(rng, 0.2 * i, 3 + i, _p1())) for i in range(40)]
 
 
+def test_a_look_alike_that_fails_at_the_next_place_is_not_accepted_there():
+    """A look-alike fires like the map for a few places and fails at the next.  With
+    ``sprt_confirming_place`` the fix is accepted only at a place whose own evidence is for the map: the
+    look-alike, whose minimum probation ends on the failing place, is not accepted, and ends with an alert;
+    the same places followed by a confirming one are accepted there."""
+    rates = {p: (OWN, OTHER) for p in range(20)}
+    cfg = {**DESIGN, "sprt_probation_places": 4, "sprt_confirming_place": True}
+    strong, silent = int(OWN * SEARCHED), 0
+
+    def drive(firing_per_place):
+        m = IntegrityMonitor(cfg, firing=rates)
+        m.begin_probation(0.0)
+        out = []
+        for i, k in enumerate(firing_per_place):        # 5 frames per place spacing of odometry
+            f = FrameStats(0.2 * i, 3 + i // 5, k, k, SEARCHED, True, np.nan, 1.0, np.nan, np.nan, 2.0 * i)
+            out.append(m.assess(f))
+            if out[-1] in ("accept", "alert"):
+                break
+        return out
+
+    look_alike = drive([strong] * 15 + [silent] * 30)
+    assert "accept" not in look_alike and look_alike[-1] == "alert"
+    # the same look-alike without the rule is accepted on the failing place's first frame
+    cfg["sprt_confirming_place"] = False
+    assert drive([strong] * 15 + [silent] * 30)[-1] == "accept"
+    cfg["sprt_confirming_place"] = True
+    right = drive([strong] * 40)
+    assert right[-1] == "accept" and len(right) == 16      # the first frame of the fourth place
+
+
 def test_a_frame_without_a_pose_counts_its_inliers_not_its_detections():
     """Detections the solver's geometry rejected are no evidence for the map: a look-alike's windows fill with
     chance responses (up to every signature searched) that no pose explains.  The rates in firing.json count
@@ -267,8 +297,12 @@ def test_bench_chooses_the_camera_checks_inlier_minimum():
     assert choose_min_inliers(rows) == 25
 
 
-def test_choose_meets_the_targets_on_synthetic_streams():
+def test_choose_meets_the_targets_on_synthetic_streams(monkeypatch):
+    from scenesig.benchmarks import integrity
     from scenesig.benchmarks.integrity import choose
+
+    # a 64-point grid of the same keys (the full one is 1296 points): the rule is under test, not the grid
+    monkeypatch.setattr(integrity, "GRID", {k: v[:2] for k, v in integrity.GRID.items()})
 
     rng = np.random.default_rng(3)
     rates = {p: (OWN, OTHER) for p in range(100)}
@@ -286,6 +320,33 @@ def test_choose_meets_the_targets_on_synthetic_streams():
     assert sel["right_runs_with_alert_rate"] == 0.0 and sel["right_accepted"] > 150
     # the realised per-probation error rates are measured and reported beside the design
     assert out["probations"]["missed_detection_rate"] == 0.0 and out["probations"]["false_alarm_rate"] <= 0.05
+    # the grid replayed by two processes gives the same grid and choice
+    twice = choose(streams, alpha=0.01, beta=0.01, jobs=2)
+    assert twice["grid"] == out["grid"] and twice["chosen"] == c
+
+
+def test_replay_begins_a_new_probation_after_the_localiser_searched():
+    """The monitor records only tracked frames, so a gap in a recorded stream is a stretch the localiser spent
+    searching: the frame after it follows a new global fix, whose probation starts afresh, as it does live.
+    Carried across the gap, the evidence and the odometry span of places before it would pass a probation
+    on one place after it."""
+    from scenesig.benchmarks.integrity import run_outcome, searched_before
+
+    rates = {p: (OWN, OTHER) for p in range(40)}
+    cfg = {**DESIGN, "sprt_probation_places": 4}
+    k = int(OWN * SEARCHED)
+
+    def frame(t, od):
+        return FrameStats(t, int(od // 10), k, k, SEARCHED, True, np.nan, 1.0, np.nan, np.nan, od)
+
+    before = [frame(0.2 * i, 2.0 * i) for i in range(15)]              # three units: probation not done
+    after = [frame(20.0 + 0.2 * i, 200.0 + 2.0 * i) for i in range(5)]   # one unit, after a search
+    stream = before + after
+    assert searched_before(stream).tolist() == [False] * 15 + [True] + [False] * 4
+    assert run_outcome(stream, rates, cfg) == (0, 0)
+    # the same frames without the gap: one probation over four units, accepted
+    joined = before + [frame(3.0 + 0.2 * i, 30.0 + 2.0 * i) for i in range(5)]
+    assert run_outcome(joined, rates, cfg)[0] > 0
 
 
 def test_choose_without_tracking_windows_keeps_the_backstops():

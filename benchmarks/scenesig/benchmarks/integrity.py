@@ -18,7 +18,10 @@ silent on the right one, on worlds nobody tuned it on.  For each seed this bench
 
 ``--calibrate`` runs with the monitor's tests switched off, recording every detector frame's statistics
 (``integrity_stats.json`` beside each localisation) so thresholds can be chosen from them
-(:func:`scenesig.localiser.integrity` docs, ``docs/integrity.md``); ``--evaluate`` runs with the defaults.
+(:func:`scenesig.localiser.integrity` docs, ``docs/integrity.md``), and localises every wrong-map run live
+as well, with the defaults (``live_wrong_runs``): after each alert the live localiser relocalises where the
+run looks most like the map, and those look-alikes are what a probation must refuse; ``--evaluate`` runs
+with the defaults.
 Everything is cached under ``--cache`` (default ``maps/bench_integrity``, never committed; several GB) per
 preset, camera rate and seed: simulated runs, maps, localisations; a rerun resumes where it stopped.
 
@@ -205,6 +208,12 @@ def calibration_folder(layout: Layout, seed: int) -> Path:
     return layout.world(seed) / f"loc-calibrate{_defaults_key('calibrate')}"
 
 
+def live_folder(layout: Layout, seed: int) -> Path:
+    """Where a world's localisations with the monitor's defaults are kept (``--evaluate``; with ``--calibrate``
+    its wrong-map runs)."""
+    return layout.world(seed) / f"loc-evaluate{_defaults_key('evaluate')}"
+
+
 def localise_one(layout: Layout, seed: int, run: Path, kind: str, condition: str, mode: str, every: int) -> dict:
     """One localisation (cached in the world's ``loc-<mode>`` folder); the run's row of the JSON."""
     from dataclasses import asdict
@@ -212,9 +221,9 @@ def localise_one(layout: Layout, seed: int, run: Path, kind: str, condition: str
     from scenesig.api import localise
     from scenesig.surveys.io import atomic_write_text
 
-    out = layout.world(seed) / f"loc-{mode}{_defaults_key(mode)}" / run.name
-    row_path = out / "row.json"
-    if row_path.exists():
+    out = (calibration_folder(layout, seed) if mode == "calibrate" else live_folder(layout, seed)) / run.name
+    row_path, stats_path = out / "row.json", out / "integrity_stats.json"
+    if row_path.exists() and stats_path.exists():    # (a row cached before statistics were kept is redone)
         return json.loads(row_path.read_text())
     from scenesig.surveys.errors import DataError
 
@@ -229,6 +238,7 @@ def localise_one(layout: Layout, seed: int, run: Path, kind: str, condition: str
                "false_fixes": 0, "integrity_alerts": 0, "bound_coverage_95": None, "lateral_bound_95_m": None,
                "failures": 0, "detector_frames": 0, "seconds": round(time.perf_counter() - t0, 2)}
         out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(stats_path, "[]")
         atomic_write_text(row_path, json.dumps(row, indent=1))
         return row
     metrics = loc.write(out, figure=False)
@@ -244,9 +254,9 @@ def localise_one(layout: Layout, seed: int, run: Path, kind: str, condition: str
            # global fixes put on probation and how they ended (the realised per-probation error rates)
            "probations": dict(loc.integrity_probations),
            "seconds": round(time.perf_counter() - t0, 2)}
-    if mode == "calibrate":
-        stats = [asdict(s) for s in loc.integrity_stats]
-        atomic_write_text(out / "integrity_stats.json", json.dumps(stats))
+    # every assessed frame's statistics: with the tests off (calibration), and live, where the localiser
+    # relocalised after each alert (the wrong-map runs' live streams are calibration data too: recorded_streams)
+    atomic_write_text(stats_path, json.dumps([asdict(s) for s in loc.integrity_stats]))
     atomic_write_text(row_path, json.dumps(row, indent=1))
     return row
 
@@ -272,7 +282,7 @@ FIRST_PARTNER = tuple(wrong_alias(0, i) for i in range(len(WRONG)))
 def localise_world(layout: Layout, seed: int, partners: list[int], mode: str, every: int) -> dict:
     """Every run of one world's row list: the five live runs, and each partner world's ``WRONG`` runs."""
     names = layout.run_names()
-    rows = []
+    rows, live_rows = [], []
     for name, cond in zip(names[len(TRAINING):], LIVE):
         rows.append(localise_one(layout, seed, layout.runs(seed) / name, "right", cond, mode, every))
     for j, partner in enumerate(partners):
@@ -281,8 +291,14 @@ def localise_world(layout: Layout, seed: int, partners: list[int], mode: str, ev
             dst = wrong_copy(layout.world(seed), src, wrong_alias(j, i))
             row = localise_one(layout, seed, dst, "wrong", (TRAINING + LIVE)[index], mode, every)
             rows.append({**row, "from_seed": partner})
+            if mode == "calibrate":
+                # the same run live, with the monitor's defaults: after each alert the localiser searches and
+                # relocalises at the place that looks most like the run -- the look-alikes a probation meets
+                # live, which a stream recorded with the tests off (tracking its first fix) rarely holds
+                live = localise_one(layout, seed, dst, "wrong", (TRAINING + LIVE)[index], "evaluate", every)
+                live_rows.append({**live, "from_seed": partner})
     return {"seed": seed, "wrong_runs_from_seed": partners[0], "wrong_runs_from_seeds": list(partners),
-            "runs": rows}
+            "runs": rows, **({"live_wrong_runs": live_rows} if mode == "calibrate" else {})}
 
 
 def partner_worlds(seeds: list[int], count: int) -> dict[int, list[int]]:
@@ -491,7 +507,7 @@ def main(argv=None) -> int:
     if a.choose and result["worlds"]:
         layout = Layout(a.cache, a.preset, a.camera_hz)
         done = [w["seed"] for w in result["worlds"]]
-        result["choice"] = choose(recorded_streams(layout, result["worlds"]), a.alpha, a.beta)
+        result["choice"] = choose(recorded_streams(layout, result["worlds"]), a.alpha, a.beta, a.jobs)
         result["choice"]["inflation"] = inflation(layout, done)
     if a.choose and "camera_check" in result:
         # the camera check's turn minimum: no correctly calibrated calibration run refused
@@ -507,7 +523,8 @@ if __name__ == "__main__":      # pragma: no cover
 # ------------------------------------------------------------------------------------ choosing settings
 def recorded_streams(layout: Layout, worlds: list[dict]) -> list[dict]:
     """The recorded frame statistics of the calibration localisations ``worlds`` lists (the JSON's rows: a
-    cache may hold more, from a run with more partner worlds), each with its map's firing rates."""
+    cache may hold more, from a run with more partner worlds), each with its map's firing rates; and of the
+    wrong-map runs localised live (``live_wrong_runs``, kind ``wrong``, ``live`` true)."""
     from scenesig.localiser import firing
     from scenesig.localiser.integrity import FrameStats
     from scenesig.mapping.store import MapStore
@@ -515,48 +532,53 @@ def recorded_streams(layout: Layout, worlds: list[dict]) -> list[dict]:
     out = []
     for world in worlds:
         seed = world["seed"]
-        folder = calibration_folder(layout, seed)
         rates = firing.load(MapStore.open(layout.map(seed)))
-        for run_dir in [folder / r["run"] for r in world["runs"]]:
-            stats_path, row_path = run_dir / "integrity_stats.json", run_dir / "row.json"
-            if not (stats_path.exists() and row_path.exists()):
-                continue
-            row = json.loads(row_path.read_text())
-            stats = [FrameStats(**d) for d in json.loads(stats_path.read_text())]
-            out.append({"seed": seed, "kind": row["kind"], "run": row["run"], "stats": stats, "rates": rates,
-                        "dir": run_dir})
+        for rows, folder, live in ((world["runs"], calibration_folder(layout, seed), False),
+                                   (world.get("live_wrong_runs", []), live_folder(layout, seed), True)):
+            for run_dir in [folder / r["run"] for r in rows]:
+                stats_path, row_path = run_dir / "integrity_stats.json", run_dir / "row.json"
+                if not (stats_path.exists() and row_path.exists()):
+                    continue
+                row = json.loads(row_path.read_text())
+                stats = [FrameStats(**d) for d in json.loads(stats_path.read_text())]
+                out.append({"seed": seed, "kind": row["kind"], "run": row["run"], "stats": stats, "rates": rates,
+                            "dir": run_dir, "live": live})
     return out
 
 
 def probation_outcomes(stats, rates, config: dict) -> list[str]:
     """A probation started at every recorded solved frame (as if a global fix had been found there), fed through
-    the monitor with ``config``: ``"accept"`` or ``"alert"`` each (end of the record: left out)."""
+    the monitor with ``config``: ``"accept"`` or ``"alert"`` each (end of the record, or a stretch the localiser
+    spent searching (:func:`searched_before`): left out)."""
     from scenesig.localiser.integrity import IntegrityMonitor
 
+    gaps = searched_before(stats)
     res = []
     for i in range(len(stats)):
         if not stats[i].solved:         # a global fix is a solved frame
             continue
         mon = IntegrityMonitor(config, "signatures", firing=rates)
         mon.begin_probation(stats[i].t)
-        for f in stats[i:]:
-            v = mon.assess(f)
+        for j in range(i, len(stats)):
+            if j > i and gaps[j]:
+                break
+            v = mon.assess(stats[j])
             if v in ("accept", "alert"):
                 res.append(v)
                 break
     return res
 
 
-def tracking_alerts(stats, rates, config: dict) -> int:
-    """Alerts the monitor raises on a stream tracked from its first frame (trusted, as after a fix)."""
-    from scenesig.localiser.integrity import IntegrityMonitor
-
-    mon = IntegrityMonitor(config, "signatures", firing=rates)
-    for f in stats:
-        mon.assess(f)
-        if mon.state == "alerted":       # count it, then trust again (the localiser would relocalise)
-            mon.state = "trusted"
-    return len(mon.alerts)
+def searched_before(stats) -> np.ndarray:
+    """Per recorded frame, whether the localiser searched globally just before it: the monitor records only the
+    frames it assesses (tracked ones), so a gap of more than 2.5 detector periods (the median interval) is a
+    stretch in which the localiser had lost track -- the frame after it follows a new global fix."""
+    t = np.array([f.t for f in stats], float)
+    out = np.zeros(len(t), bool)
+    if len(t) > 2:
+        dt = np.diff(t)
+        out[1:] = dt > 2.5 * float(np.median(dt))
+    return out
 
 
 def _windows(stats, n: int):
@@ -582,13 +604,14 @@ def _ceil(x: float, step: float) -> float:
 
 def run_outcome(stats, rates, config: dict) -> tuple[int, int]:
     """(accepted frames, alerts) of one recorded stream replayed through the monitor as the localiser uses
-    it without INS/GPS: the first solved frame starts a probation (a global fix); after an alert the next
-    solved frame starts another (the localiser relocalises)."""
+    it without INS/GPS: the first solved frame starts a probation (a global fix); after an alert, or a stretch
+    the localiser spent searching (:func:`searched_before`), the next solved frame starts another."""
     from scenesig.localiser.integrity import IntegrityMonitor
 
     mon = IntegrityMonitor(config, "signatures", firing=rates)
     lost, accepted = True, 0
-    for f in stats:
+    for f, searched in zip(stats, searched_before(stats)):
+        lost = lost or bool(searched)
         if lost:
             if not f.solved:
                 continue
@@ -600,13 +623,14 @@ def run_outcome(stats, rates, config: dict) -> tuple[int, int]:
     return accepted, len(mon.alerts)
 
 
-def choose(streams: list[dict], alpha: float, beta: float) -> dict:
+def choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> dict:
     """The monitor's settings from calibration streams (each rule in ``docs/integrity.md``):
 
     * ``sprt_max_residual``, ``sprt_max_nis``: 1.1 x the largest tracking-window value on the right maps' runs;
     * ``sprt_other_factor`` (κ), ``sprt_own_fraction`` (γ), ``sprt_dispersion`` (φ), ``cusum_h`` and the
-      probation's minimum (``sprt_probation_frames`` at ``sprt_probation_places``): over a grid, each stream
-      replayed through the monitor (:func:`run_outcome`); among the settings with which at least 95 % of
+      probation's minimum (``sprt_probation_frames`` at ``sprt_probation_places``; whether the place being
+      driven must confirm a fix, ``sprt_confirming_place``): over :data:`GRID`, each stream replayed through
+      the monitor (:func:`run_outcome`; ``jobs`` grid points at once); among the settings with which at least 95 % of
       the wrong-map runs accept no fix and none accepts more than 3 frames, the one with the fewest
       right-map runs alerting (then the fewest wrong-map frames accepted, the most right-map frames
       accepted, the larger φ and h); if none meets the wrong-map target, the one closest to it.  The Wald
@@ -621,7 +645,7 @@ def choose(streams: list[dict], alpha: float, beta: float) -> dict:
     level = logger.level
     logger.setLevel(logging.ERROR)
     try:
-        return _choose(streams, alpha, beta)
+        return _choose(streams, alpha, beta, jobs)
     finally:
         logger.setLevel(level)
 
@@ -633,7 +657,28 @@ def _backstop(values: np.ndarray, step: float, default: float) -> float:
     return _ceil(1.1 * float(v.max()), step) if v.size else float(default)
 
 
-def _choose(streams: list[dict], alpha: float, beta: float) -> dict:
+#: the grid :func:`choose` replays every calibration stream on (``docs/integrity.md``, "Calibrated on many
+#: worlds"); ``sprt_confirming_place`` joined it in the fourth calibration
+GRID = {"sprt_other_factor": (1.0, 2.0, 3.0, 4.0), "sprt_own_fraction": (0.4, 0.6, 0.8),
+        "sprt_dispersion": (1.0, 2.0, 4.0), "cusum_h": (8.0, 16.0, 32.0), "sprt_probation_frames": (6, 12),
+        "sprt_probation_places": (2, 3, 4), "sprt_confirming_place": (False, True)}
+
+#: the streams the grid's worker processes replay (set before the pool forks: one copy, not one per point)
+_GRID_STREAMS: dict = {}
+
+
+def _grid_point(setting: dict) -> dict:
+    """One grid point: every calibration stream replayed with ``setting`` on ``_GRID_STREAMS["base"]``."""
+    cfg = {**_GRID_STREAMS["base"], **setting}
+    r = [run_outcome(s["stats"], s["rates"], cfg) for s in _GRID_STREAMS["right"]]
+    w = [run_outcome(s["stats"], s["rates"], cfg) for s in _GRID_STREAMS["wrong"]]
+    return {**setting, "right_runs_with_alert_rate": float(np.mean([a > 0 for _, a in r])),
+            "wrong_runs_zero_accepted_rate": float(np.mean([k == 0 for k, _ in w])),
+            "wrong_run_max_accepted": int(max(k for k, _ in w)), "wrong_accepted": int(sum(k for k, _ in w)),
+            "right_accepted": int(sum(k for k, _ in r))}
+
+
+def _choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> dict:
     from scenesig.localiser.integrity import default_config
 
     right = [s for s in streams if s["kind"] == "right"]
@@ -643,19 +688,16 @@ def _choose(streams: list[dict], alpha: float, beta: float) -> dict:
     chosen = {"sprt_max_residual": _backstop(win[:, 0], 0.1, default_config["sprt_max_residual"]),
               "sprt_max_nis": _backstop(win[:, 1], 1.0, default_config["sprt_max_nis"])}
     base = {**chosen, "sprt_alpha": alpha, "sprt_beta": beta}
-    grid = []
-    for kappa, gamma, phi, h, frames, places in itertools.product(
-            (1.0, 2.0, 3.0, 4.0), (0.4, 0.6, 0.8), (1.0, 2.0, 4.0), (8.0, 16.0, 32.0), (6, 12), (2, 3, 4)):
-        cfg = {**base, "sprt_other_factor": kappa, "sprt_own_fraction": gamma, "sprt_dispersion": phi,
-               "cusum_h": h, "sprt_probation_frames": frames, "sprt_probation_places": places}
-        r = [run_outcome(s["stats"], s["rates"], cfg) for s in right]
-        w = [run_outcome(s["stats"], s["rates"], cfg) for s in wrong]
-        grid.append({"sprt_other_factor": kappa, "sprt_own_fraction": gamma, "sprt_dispersion": phi, "cusum_h": h,
-                     "sprt_probation_frames": frames, "sprt_probation_places": places,
-                     "right_runs_with_alert_rate": float(np.mean([a > 0 for _, a in r])),
-                     "wrong_runs_zero_accepted_rate": float(np.mean([k == 0 for k, _ in w])),
-                     "wrong_run_max_accepted": int(max(k for k, _ in w)), "wrong_accepted": int(sum(k for k, _ in w)),
-                     "right_accepted": int(sum(k for k, _ in r))})
+    settings = [dict(zip(GRID, values)) for values in itertools.product(*GRID.values())]
+    _GRID_STREAMS.update(base=base, right=right, wrong=wrong)
+    try:
+        if jobs > 1:
+            with ProcessPoolExecutor(max_workers=jobs) as pool:
+                grid = list(pool.map(_grid_point, settings, chunksize=8))
+        else:
+            grid = [_grid_point(g) for g in settings]
+    finally:
+        _GRID_STREAMS.clear()
     ok = [g for g in grid if g["wrong_runs_zero_accepted_rate"] >= 0.95 and g["wrong_run_max_accepted"] <= 3]
     if ok:
         best = min(ok, key=lambda g: (g["right_runs_with_alert_rate"], g["wrong_accepted"], -g["right_accepted"],
@@ -663,8 +705,7 @@ def _choose(streams: list[dict], alpha: float, beta: float) -> dict:
     else:
         best = min(grid, key=lambda g: (-g["wrong_runs_zero_accepted_rate"], g["right_runs_with_alert_rate"],
                                         g["wrong_accepted"]))
-    chosen.update({k: best[k] for k in ("sprt_other_factor", "sprt_own_fraction", "sprt_dispersion", "cusum_h",
-                                         "sprt_probation_frames", "sprt_probation_places")})
+    chosen.update({k: best[k] for k in GRID})
     cfg = {**base, **chosen}
     r = [v for s in right for v in probation_outcomes(s["stats"], s["rates"], cfg)]
     w = [v for s in wrong for v in probation_outcomes(s["stats"], s["rates"], cfg)]
@@ -673,26 +714,8 @@ def _choose(streams: list[dict], alpha: float, beta: float) -> dict:
                            "false_alarm_rate": float(np.mean([v == "alert" for v in r])) if r else None,
                            "missed_detection_rate": float(np.mean([v == "accept" for v in w])) if w else None,
                            "design": {"false_alarm": beta, "missed_detection": alpha}},
-            "right_windows": int(len(win)), "right_runs": len(right), "wrong_runs": len(wrong)}
-
-
-def _probation_length(stats, rates, config) -> float:
-    """Mean frames a probation started at each recorded frame takes to be accepted (NaN if none is)."""
-    from scenesig.localiser.integrity import IntegrityMonitor
-
-    lengths = []
-    for i in range(len(stats)):
-        if not stats[i].solved:
-            continue
-        mon = IntegrityMonitor(config, "signatures", firing=rates)
-        mon.begin_probation(stats[i].t)
-        for k, f in enumerate(stats[i:]):
-            v = mon.assess(f)
-            if v == "accept":
-                lengths.append(k + 1)
-            if v in ("accept", "alert"):
-                break
-    return float(np.mean(lengths)) if lengths else np.nan
+            "right_windows": int(len(win)), "right_runs": len(right),
+            "wrong_runs": sum(not s.get("live") for s in wrong), "wrong_live_runs": sum(bool(s.get("live")) for s in wrong)}
 
 
 #: the bound model's grid (``choose_bound_model``): innovation windows (localisations), factors, and the
