@@ -633,7 +633,8 @@ def choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> dic
       the monitor (:func:`run_outcome`; ``jobs`` grid points at once); among the settings with which at least 95 % of
       the wrong-map runs accept no fix and none accepts more than 3 frames, the one with the fewest
       right-map runs alerting (then the fewest wrong-map frames accepted, the most right-map frames
-      accepted, the larger φ and h); if none meets the wrong-map target, the one closest to it.  The Wald
+      accepted, the larger φ and h, the test without the confirming place); if none meets the wrong-map
+      target, the one closest to it.  The Wald
       bounds come from the design rates ``alpha`` and ``beta``; the realised per-probation rates are
       measured (:func:`probation_outcomes`) and reported beside them.
     """
@@ -663,8 +664,22 @@ GRID = {"sprt_other_factor": (1.0, 2.0, 3.0, 4.0), "sprt_own_fraction": (0.4, 0.
         "sprt_dispersion": (1.0, 2.0, 4.0), "cusum_h": (8.0, 16.0, 32.0), "sprt_probation_frames": (6, 12),
         "sprt_probation_places": (2, 3, 4), "sprt_confirming_place": (False, True)}
 
-#: the streams the grid's worker processes replay (set before the pool forks: one copy, not one per point)
+#: the streams the grid's worker processes replay: set once per process (:func:`_set_grid_streams`, the
+#: pool's initializer), not sent with every point
 _GRID_STREAMS: dict = {}
+
+
+def _set_grid_streams(base: dict, right: list[dict], wrong: list[dict]) -> None:
+    _GRID_STREAMS.update(base=base, right=right, wrong=wrong)
+
+
+def _grid_worker(base: dict, right: list[dict], wrong: list[dict]) -> None:
+    """A grid worker's initializer: the streams, and the monitor's warnings silenced as in :func:`choose`
+    (a spawned worker does not inherit the parent's logger level)."""
+    import logging
+
+    logging.getLogger("scenesig.localiser.integrity").setLevel(logging.ERROR)
+    _set_grid_streams(base, right, wrong)
 
 
 def _grid_point(setting: dict) -> dict:
@@ -689,10 +704,11 @@ def _choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> di
               "sprt_max_nis": _backstop(win[:, 1], 1.0, default_config["sprt_max_nis"])}
     base = {**chosen, "sprt_alpha": alpha, "sprt_beta": beta}
     settings = [dict(zip(GRID, values)) for values in itertools.product(*GRID.values())]
-    _GRID_STREAMS.update(base=base, right=right, wrong=wrong)
+    _set_grid_streams(base, right, wrong)
     try:
         if jobs > 1:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
+            with ProcessPoolExecutor(max_workers=jobs, initializer=_grid_worker,
+                                     initargs=(base, right, wrong)) as pool:
                 grid = list(pool.map(_grid_point, settings, chunksize=8))
         else:
             grid = [_grid_point(g) for g in settings]
@@ -701,7 +717,7 @@ def _choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> di
     ok = [g for g in grid if g["wrong_runs_zero_accepted_rate"] >= 0.95 and g["wrong_run_max_accepted"] <= 3]
     if ok:
         best = min(ok, key=lambda g: (g["right_runs_with_alert_rate"], g["wrong_accepted"], -g["right_accepted"],
-                                      -g["sprt_dispersion"], -g["cusum_h"]))
+                                      -g["sprt_dispersion"], -g["cusum_h"], g["sprt_confirming_place"]))
     else:
         best = min(grid, key=lambda g: (-g["wrong_runs_zero_accepted_rate"], g["right_runs_with_alert_rate"],
                                         g["wrong_accepted"]))

@@ -97,7 +97,7 @@ default_config = {
     # for the map -- not on the strength of the places before alone: a look-alike of another world fires like
     # the map for a few places and fails at the next.  Until one does, the fix stays tentative.  Off by
     # default: with four places of probation it refused no more wrong runs on the calibration worlds
-    # (docs/integrity.md, "Fourth calibration"), and the rule keeps the simpler test on a tie.
+    # (docs/integrity.md, "Fourth calibration"), and on a tie the rule keeps the simpler test.
     "sprt_confirming_place": False,
     # Maps without firing rates (built before them): every threshold below was chosen on development runs
     # that are not reported, for issue 25 (docs/integrity.md,
