@@ -423,3 +423,24 @@ def test_bench_runs_end_to_end_on_the_tiny_preset(tmp_path):
     assert main(["--seeds", "7-8", "--evaluate", "--preset", "tiny", "--camera-hz", "4", "--cache",
                  str(tmp_path / "cache"), "--json", str(out2)]) == 0
     assert json.loads(out2.read_text())["worlds"] == doc["worlds"]
+
+
+def test_camera_check_refuses_only_when_the_medians_interval_is_beyond_the_refuse_ratio():
+    """A refusal needs the distribution-free 90 % interval of the median turn ratio wholly beyond 1.25: a
+    correctly calibrated fog run's scattered turns (2102's, median 2.82 over 7) give a warning, a halved
+    focal length's agreeing turns an error."""
+    from scenesig.mapping.camera_check import calibration_finding, median_interval
+
+    x = np.arange(1.0, 17.0)
+    assert median_interval(x[:4], 0.9) is None                     # 4 values: even the range is < 90 %
+    assert median_interval(x[:5], 0.9) == (1.0, 5.0)               # 1 - 2/32 = 0.9375
+    assert median_interval(x[:7], 0.9) == (1.0, 7.0)               # (x2, x6) covers only 0.875
+    assert median_interval(x, 0.9) == (5.0, 12.0)                  # 1 - 2 P(B <= 4), B ~ Bin(16, 1/2): 0.923
+    fog = [[r, 40] for r in (0.43, 1.14, 1.15, 2.82, 4.36, 7.40, 11.43)]
+    finding, ratio, n = calibration_finding(fog)
+    assert (ratio, n) == (2.82, 7) and finding.severity == "warning" and "not refused" in finding.reason
+    halved = [[r, 60] for r in (1.87, 1.93, 1.98, 2.0, 2.01, 2.04, 2.08, 2.1)]
+    finding, ratio, _ = calibration_finding(halved)
+    assert finding.severity == "error" and 1.9 < ratio < 2.1
+    doubled = [[r / 4, 60] for r, _ in halved]                       # the images turn half as much
+    assert calibration_finding(doubled)[0].severity == "error"

@@ -35,7 +35,7 @@ from scenesig.surveys.geometry import Camera, interpolate_poses, invert
 from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "Finding", "CameraAssessment", "compare_cameras", "rotation_consistency", "turns",
-           "calibration_finding", "assess"]
+           "median_interval", "calibration_finding", "assess"]
 
 default_config = {
     # Listed as a difference (a warning): focal length or principal point more than this share apart,
@@ -65,10 +65,13 @@ default_config = {
     "warn_ratio": 1.10,
     "refuse_ratio": 1.25,
     # A refusal stops the user's job, so it needs agreeing evidence: at least this many turns, and the
-    # middle half of their ratios beyond ``warn_ratio`` on the same side.  Scattered estimates (fog, few
-    # features, small turns) give a warning only: a correctly calibrated fog run of the tiny test world,
-    # imported from a bag, gave a median of 1.34 over 5 turns with quartiles 1.02-2.04.
+    # distribution-free ``refuse_confidence`` interval of their median ratio (order statistics; no model of
+    # how a turn's estimate errs) wholly beyond ``refuse_ratio`` on one side.  Scattered estimates (fog, few
+    # features, small turns) give a warning only: correctly calibrated fog runs gave medians of 1.34 over 5
+    # turns (ratios 1.02-2.04 between the quartiles; the tiny test world, imported from a bag) and 2.82 over
+    # 7 (0.43-11.4; docs/integrity.md, "Camera compatibility").  A design level, not fitted: 90 %.
     "refuse_min_pairs": 5,
+    "refuse_confidence": 0.9,
 }
 
 
@@ -234,6 +237,19 @@ def _median_ratio(measured, cfg) -> tuple[float | None, list[float]]:
     return float(np.median(ratios)), ratios
 
 
+def median_interval(values, confidence: float) -> tuple[float, float] | None:
+    """The distribution-free interval ``[x_(j), x_(n+1-j)]`` of the median of ``values`` (order statistics,
+    1-based), ``j`` the largest with which it covers the median with at least ``confidence``:
+    ``1 - 2 P(B <= j - 1) >= confidence`` for ``B ~ Binomial(n, 1/2)``.  None when even the full range does
+    not reach that confidence (too few values)."""
+    from scipy.stats import binom
+
+    x = np.sort(np.asarray(values, float))
+    n = len(x)
+    ok = [j for j in range(1, n // 2 + 1) if 1.0 - 2.0 * binom.cdf(j - 1, n, 0.5) >= confidence]
+    return (float(x[ok[-1] - 1]), float(x[n - ok[-1]])) if ok else None
+
+
 def calibration_finding(measured, config: dict | None = None) -> tuple[Finding | None, float | None, int]:
     """The verdict on :func:`turns`' measurement: a :class:`Finding` (``error``: refuse; ``warning``) or
     None, with the median ratio and the number of turns it rests on."""
@@ -243,18 +259,19 @@ def calibration_finding(measured, config: dict | None = None) -> tuple[Finding |
     if ratio is None:
         return None, None, n
     dev = max(ratio, 1.0 / ratio) if ratio > 0 else np.inf
-    q1, q3 = np.percentile(ratios, [25, 75])
-    w = float(cfg["warn_ratio"])
-    agreeing = n >= int(cfg["refuse_min_pairs"]) and (q1 > w or q3 < 1.0 / w)
+    w, refuse = float(cfg["warn_ratio"]), float(cfg["refuse_ratio"])
+    interval = median_interval(ratios, float(cfg["refuse_confidence"]))
+    lo, hi = interval if interval is not None else (0.0, np.inf)
+    agreeing = n >= int(cfg["refuse_min_pairs"]) and (lo > refuse or hi < 1.0 / refuse)
     msg = (f"turns seen in the images through the intrinsics are {ratio:.2f}x those the odometry measured "
            f"(median of {n} turns; 1 for a correct calibration): fx, fy are likely about "
            f"{1.0 / ratio:.2f}x the true ones")
     if dev > cfg["refuse_ratio"] and agreeing:
         return Finding("calibration", msg + " -- every pose solved through them would be wrong", "error"), ratio, n
     if dev > cfg["refuse_ratio"]:
-        return Finding("calibration", msg + f" -- not refused: {n} turns whose ratios disagree "
-                       f"(quartiles {q1:.2f}-{q3:.2f}) are too little evidence; check the calibration",
-                       "warning"), ratio, n
+        return Finding("calibration", msg + f" -- not refused: {n} turns whose ratios disagree (the median's "
+                       f"{cfg['refuse_confidence']:.0%} interval {lo:.2f}-{hi:.2f} reaches within "
+                       f"{refuse:g}x of 1) are too little evidence; check the calibration", "warning"), ratio, n
     if dev > w:
         return Finding("calibration", msg, "warning"), ratio, n
     return None, ratio, n
