@@ -266,9 +266,9 @@ def calibration_finding(measured, config: dict | None = None) -> tuple[Finding |
     msg = (f"turns seen in the images through the intrinsics are {ratio:.2f}x those the odometry measured "
            f"(median of {n} turns; 1 for a correct calibration): fx, fy are likely about "
            f"{1.0 / ratio:.2f}x the true ones")
-    if dev > cfg["refuse_ratio"] and agreeing:
+    if dev > refuse and agreeing:
         return Finding("calibration", msg + " -- every pose solved through them would be wrong", "error"), ratio, n
-    if dev > cfg["refuse_ratio"]:
+    if dev > refuse:
         return Finding("calibration", msg + f" -- not refused: {n} turns whose ratios disagree (the median's "
                        f"{cfg['refuse_confidence']:.0%} interval {lo:.2f}-{hi:.2f} reaches within "
                        f"{refuse:g}x of 1) are too little evidence; check the calibration", "warning"), ratio, n
