@@ -5,6 +5,7 @@ The layers' folders stay at the top of the repository, each a source root of the
 tests check what a user gets when they install it: every module once, from the files of the checkout.
 """
 import os
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -19,6 +20,20 @@ LAYERS = ("surveys", "signatures", "mapping", "localiser", "aerial", "benchmarks
 def _run(args, cwd, **kw):
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}   # what a user's shell has
     return subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=600, env=env, **kw)
+
+
+def _packaging_copy(dst: Path) -> Path:
+    """The checkout's packaging inputs (``pyproject.toml``, ``README.md`` and every source root of
+    ``[tool.setuptools.package-dir]``) copied to ``dst``.  Installing or building from the checkout itself
+    rebuilds its ``build/`` folder -- the editable install's link tree, which every other test process and
+    ``scenesig`` subprocess of a parallel suite imports from (pytest-xdist, ``-n 2``): a test installing from
+    it broke another's ``scenesig build-map`` mid-import.  The copy has the same files and configuration."""
+    dirs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(ROOT / name, dst / name)
+    for top in sorted({Path(folder).parts[0] for folder in dirs.values()}):
+        shutil.copytree(ROOT / top, dst / top, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "build"))
+    return dst
 
 
 def _checkout_modules() -> list[str]:
@@ -39,24 +54,26 @@ def test_editable_install_imports_the_checkout(tmp_path):
     """``pip install -e .`` in a fresh environment: the package and every layer come from this checkout's
     files (each layer from its folder's source root, through the links of the editable install's one package
     folder), a bare ``lint-imports`` sees every layer, and the console script runs."""
+    (tmp_path / "checkout").mkdir()
+    src = _packaging_copy((tmp_path / "checkout").resolve())
     env_dir = tmp_path / "venv"
     venv.create(env_dir, system_site_packages=True, with_pip=True)
     py = env_dir / "bin" / "python"
-    proc = _run([str(py), "-m", "pip", "install", "-q", "--no-deps", "-e", str(ROOT)], cwd=tmp_path)
+    proc = _run([str(py), "-m", "pip", "install", "-q", "--no-deps", "-e", str(src)], cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     code = ("import pathlib, scenesig, scenesig.mapping.store as s, scenesig.surveys.importers.kitti_raw as k; "
             "assert callable(scenesig.build_map) and len(scenesig.__path__) == 1; "
             "[print(pathlib.Path(m.__file__).resolve()) for m in (scenesig, s, k)]")
-    for cwd in (tmp_path, ROOT):              # the repository root's scenesig/ folder does not hide it
+    for cwd in (tmp_path, src):              # the repository root's scenesig/ folder does not hide it
         proc = _run([str(py), "-c", code], cwd=cwd)
         assert proc.returncode == 0, proc.stderr[-2000:]
-    assert proc.stdout.split() == [str(ROOT / "scenesig" / "scenesig" / "__init__.py"),
-                                   str(ROOT / "mapping" / "scenesig" / "mapping" / "store.py"),
-                                   str(ROOT / "surveys" / "scenesig" / "surveys" / "importers" / "kitti_raw.py")]
+    assert proc.stdout.split() == [str(src / "scenesig" / "scenesig" / "__init__.py"),
+                                   str(src / "mapping" / "scenesig" / "mapping" / "store.py"),
+                                   str(src / "surveys" / "scenesig" / "surveys" / "importers" / "kitti_raw.py")]
     proc = _run([str(env_dir / "bin" / "scenesig"), "config", "show"], cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     lint = "import sys; from importlinter.cli import lint_imports_command as c; sys.argv[1:] = ['--no-cache']; c()"
-    proc = _run([str(py), "-c", lint], cwd=ROOT)
+    proc = _run([str(py), "-c", lint], cwd=src)
     assert proc.returncode == 0 and " 0 broken" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-2000:]
 
 
@@ -92,8 +109,10 @@ def test_a_users_benchmarks_folder_does_not_shadow_ours(tmp_path):
 
 def test_wheel_holds_only_scenesig_and_runs(tmp_path):
     """A built wheel: nothing but ``scenesig/`` (with the package data); installed, the CLI runs."""
+    (tmp_path / "checkout").mkdir()
+    src = _packaging_copy(tmp_path / "checkout")
     wheels = tmp_path / "wheels"
-    proc = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheels), str(ROOT)], cwd=tmp_path)
+    proc = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheels), str(src)], cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     (wheel,) = wheels.glob("scenesig-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
