@@ -22,23 +22,29 @@ def _run(args, cwd, **kw):
     return subprocess.run(args, cwd=cwd, capture_output=True, text=True, timeout=600, env=env, **kw)
 
 
-def _packaging_copy(dst: Path) -> Path:
+def _package_dirs() -> dict[str, str]:
+    """``[tool.setuptools.package-dir]``: each package and its folder in the checkout."""
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+
+
+def _packaging_copy(tmp_path: Path) -> Path:
     """The checkout's packaging inputs (``pyproject.toml``, ``README.md`` and every source root of
-    ``[tool.setuptools.package-dir]``) copied to ``dst``.  Installing or building from the checkout itself
-    rebuilds its ``build/`` folder -- the editable install's link tree, which every other test process and
-    ``scenesig`` subprocess of a parallel suite imports from (pytest-xdist, ``-n 2``): a test installing from
-    it broke another's ``scenesig build-map`` mid-import.  The copy has the same files and configuration."""
-    dirs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    ``[tool.setuptools.package-dir]``) copied to ``tmp_path/checkout``.  Installing or building from the checkout
+    itself rebuilds its ``build/`` folder -- the editable install's link tree, which every other test process
+    and ``scenesig`` subprocess of a parallel suite imports from (pytest-xdist, ``-n 2``): a test installing
+    from it broke another's ``scenesig build-map`` mid-import.  The copy has the same files and configuration."""
+    dst = (tmp_path / "checkout").resolve()
+    dst.mkdir()
     for name in ("pyproject.toml", "README.md"):
         shutil.copy2(ROOT / name, dst / name)
-    for top in sorted({Path(folder).parts[0] for folder in dirs.values()}):
+    for top in sorted({Path(folder).parts[0] for folder in _package_dirs().values()}):
         shutil.copytree(ROOT / top, dst / top, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "build"))
     return dst
 
 
 def _checkout_modules() -> list[str]:
     """The package's files as the wheel should hold them: ``scenesig/<path under the package's folder>``."""
-    dirs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    dirs = _package_dirs()
     out = []
     for name, folder in dirs.items():
         prefix = Path(*name.split("."))
@@ -51,11 +57,11 @@ def _checkout_modules() -> list[str]:
 
 
 def test_editable_install_imports_the_checkout(tmp_path):
-    """``pip install -e .`` in a fresh environment: the package and every layer come from this checkout's
-    files (each layer from its folder's source root, through the links of the editable install's one package
-    folder), a bare ``lint-imports`` sees every layer, and the console script runs."""
-    (tmp_path / "checkout").mkdir()
-    src = _packaging_copy((tmp_path / "checkout").resolve())
+    """``pip install -e .`` in a fresh environment: the package and every layer come from the checkout's
+    files (of a copy of its packaging inputs, :func:`_packaging_copy`; each layer from its folder's source
+    root, through the links of the editable install's one package folder), a bare ``lint-imports`` sees every
+    layer, and the console script runs."""
+    src = _packaging_copy(tmp_path)
     env_dir = tmp_path / "venv"
     venv.create(env_dir, system_site_packages=True, with_pip=True)
     py = env_dir / "bin" / "python"
@@ -109,8 +115,7 @@ def test_a_users_benchmarks_folder_does_not_shadow_ours(tmp_path):
 
 def test_wheel_holds_only_scenesig_and_runs(tmp_path):
     """A built wheel: nothing but ``scenesig/`` (with the package data); installed, the CLI runs."""
-    (tmp_path / "checkout").mkdir()
-    src = _packaging_copy(tmp_path / "checkout")
+    src = _packaging_copy(tmp_path)
     wheels = tmp_path / "wheels"
     proc = _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheels), str(src)], cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]

@@ -797,7 +797,7 @@ def _choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> di
     cfg = {**base, **chosen}
     r = [v for s in right for v in probation_outcomes(s["stats"], s["rates"], cfg)]
     w = [v for s in wrong for v in probation_outcomes(s["stats"], s["rates"], cfg)]
-    return {"chosen": chosen, "selected": best, "grid": grid, "meets_wrong_target": bool(meets_wrong_target(grid)),
+    return {"chosen": chosen, "selected": best, "grid": grid, "meets_wrong_target": bool(ok),
             "probations": {"right": len(r), "wrong": len(w),
                            "false_alarm_rate": float(np.mean([v == "alert" for v in r])) if r else None,
                            "missed_detection_rate": float(np.mean([v == "accept" for v in w])) if w else None,
