@@ -261,6 +261,47 @@ def test_prior_chooses_nearest_place_by_position_and_heading(world):
     assert loc.place_ahead(2, T_back) == 1
 
 
+def test_a_standing_vehicles_frames_count_as_one_view(world):
+    # The frames of a standing vehicle see the same view: their errors are one error.  They are localised
+    # but add nothing to the graph, so the stated covariance does not shrink while the vehicle stands, and
+    # the next frame after moving view_baseline_m enters again.
+    run, store = world
+    truth = lambda t: run.pose_at(t, "truth")  # noqa: E731
+    t0 = run.truth_times[45]
+    sigma = np.array([0.003, 0.003, 0.005, 0.3, 0.3, 0.1])
+    cov = np.diag(sigma ** 2)
+    still = np.eye(4)
+
+    def fed(config):
+        loc = Localiser(store, truth, config)
+        loc.start(t0)
+        T = truth(t0) @ make_pose(np.eye(3), [0.0, 0.2, 0.0])     # one view's error, the same on every frame
+        c = Measurement(LocalisationConstraint(T, cov, T, np.linalg.inv(cov)))
+        variances = []
+        for i in range(1, 21):                  # 4 s standing at 5 Hz, odometry at 20 Hz
+            for j in range(4):
+                loc.add_odometry(t0 + 0.05 * (4 * (i - 1) + j + 1), still)
+            assert loc.add_measurement(t0 + 0.2 * i, c)
+            variances.append(loc.covariance(t0 + 0.2 * i)[4, 4])
+        return loc, np.array(variances)
+
+    loc, v = fed(None)
+    assert np.all(v[1:] >= v[0] * (1 - 1e-6))                       # one view's information, however long
+    assert len(loc.localisation_times) == 20                          # ... and every frame localised
+    _, v_counted = fed({"view_baseline_m": 0.0, "view_turn_deg": 0.0})  # every frame as a new view
+    assert v_counted[-1] < 0.2 * v[-1]                                 # (the test can fail: it shrinks)
+    # moving on: a frame 0.3 m further enters the graph and tightens it
+    t1 = t0 + 4.0
+    loc.add_odometry(t1 + 0.05, make_pose(np.eye(3), [0.3, 0.0, 0.0]))
+    assert not loc.same_view(t1 + 0.05)
+    T = truth(t0) @ make_pose(np.eye(3), [0.3, 0.0, 0.0])
+    assert loc.add_measurement(t1 + 0.05, Measurement(LocalisationConstraint(T, cov, T, np.linalg.inv(cov))))
+    assert loc.covariance(t1 + 0.05)[4, 4] < v[-1]
+    # turning on the spot is a new view too
+    loc.add_odometry(t1 + 0.1, make_pose(rot_z(np.radians(3.0))))
+    assert not loc.same_view(t1 + 0.1)
+
+
 def test_estimates_are_snapped_to_the_road_plane(world):
     # Pitch drift in the odometry lifts dead reckoning off the hill road; the output stays on it.
     run, store = world

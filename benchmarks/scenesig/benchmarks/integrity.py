@@ -189,16 +189,18 @@ def _median(values) -> float | None:
 
 def _defaults_key(mode: str) -> str:
     """``-`` and a digest of the defaults a ``mode``'s localisations depend on: the camera check's (it may
-    refuse a run before replaying) and, for an evaluation, the monitor's and the bound model's
-    (calibration runs with the monitor's tests off, and the bound model is chosen from them).  A localisation cached under other defaults is not
-    reused once they change."""
+    refuse a run before replaying), the localiser block's (which localisations enter the pose graph) and,
+    for an evaluation, the monitor's and the bound model's (calibration runs with the monitor's tests off,
+    and the bound model is chosen from them).  A localisation cached under other defaults is not reused
+    once they change."""
     import hashlib
 
     from scenesig.localiser.integrity import default_config
+    from scenesig.localiser.pipeline import default_config as localiser_config
     from scenesig.localiser.uncertainty import INFLATION, INNOVATION_FACTOR, INNOVATION_WINDOW
     from scenesig.mapping.camera_check import default_config as camera_config
 
-    used: dict = {"camera_check": camera_config}
+    used: dict = {"camera_check": camera_config, "localiser": localiser_config}
     if mode == "evaluate":
         used.update({"integrity": default_config, "inflation": INFLATION,
                      "innovation": [INNOVATION_WINDOW, INNOVATION_FACTOR]})
