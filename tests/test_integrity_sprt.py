@@ -238,6 +238,21 @@ def test_bench_partner_worlds_and_their_run_names():
     assert [wrong_alias(j, i) for j in range(2) for i in range(2)] == ["drive1", "drive2", "drive3", "drive4"]
 
 
+def test_bench_cache_keys_follow_the_defaults_the_localisations_depend_on(monkeypatch):
+    """A cached localisation is not reused once a default it depends on changes: the localiser block's (both
+    modes), the monitor's (an evaluation only)."""
+    from scenesig.benchmarks import integrity as bench
+    from scenesig.localiser import integrity, pipeline
+
+    before = {mode: bench._defaults_key(mode) for mode in ("calibrate", "evaluate")}
+    monkeypatch.setitem(pipeline.default_config, "view_baseline_m", 0.5)
+    assert all(bench._defaults_key(mode) != key for mode, key in before.items())
+    monkeypatch.undo()
+    monkeypatch.setitem(integrity.default_config, "cusum_h", integrity.default_config["cusum_h"] + 1)
+    assert bench._defaults_key("calibrate") == before["calibrate"]
+    assert bench._defaults_key("evaluate") != before["evaluate"]
+
+
 def test_bench_localises_each_partners_runs_against_the_map(tmp_path, monkeypatch):
     """With two partner worlds a map meets four wrong runs: each partner's live night and sunny training run,
     copied under its own name, each row naming the world it came from."""
