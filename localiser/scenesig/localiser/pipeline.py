@@ -36,7 +36,7 @@ from typing import Callable
 import numpy as np
 
 from scenesig.mapping.store import MapStore
-from scenesig.surveys.geometry import invert
+from scenesig.surveys.geometry import invert, log_so3
 from scenesig.surveys.settings import merge_settings
 
 from .failure import FAILURE_DISTANCE_M, is_failure
@@ -404,7 +404,7 @@ class Localiser:
         if self._view_t is None:
             return False
         T = self.odometry_between(self._view_t, t)
-        turn = np.degrees(np.arccos(np.clip(0.5 * (np.trace(T[:3, :3]) - 1.0), -1.0, 1.0)))
+        turn = np.degrees(np.linalg.norm(log_so3(T[:3, :3])))
         return bool(np.linalg.norm(T[:3, 3]) < self.config["view_baseline_m"] and turn < self.config["view_turn_deg"])
 
     @property
