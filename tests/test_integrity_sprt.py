@@ -11,9 +11,10 @@ from scenesig.localiser.integrity import FrameStats, IntegrityMonitor
 
 OWN, OTHER = 0.6, 0.1          # a place's firing rates: on its own place, elsewhere
 SEARCHED = 40                  # signatures searched per frame
-#: independent firings (dispersion 1): the setting in which Wald's bounds hold as stated
+#: independent firings (dispersion 1), uncensored: the setting in which Wald's bounds hold as stated
 DESIGN = {"sprt_alpha": 0.01, "sprt_beta": 0.01, "sprt_other_factor": 1.0, "sprt_own_fraction": 0.5,
-          "sprt_dispersion": 1.0, "cusum_h": 8.0, "sprt_probation_frames": 6, "sprt_probation_places": 2}
+          "sprt_dispersion": 1.0, "cusum_h": 8.0, "sprt_probation_frames": 6, "sprt_probation_places": 2,
+          "sprt_lookalike_places": 0}
 
 
 def _p1():
@@ -154,6 +155,51 @@ def test_a_look_alike_that_fails_at_the_next_place_is_not_accepted_there():
     assert right[-1] == "accept" and len(right) == 16      # the first frame of the fourth place
 
 
+def test_the_censored_test_does_not_accept_on_a_few_look_alike_places():
+    """Huber's censored SPRT: with ``sprt_lookalike_places`` L, no place counts for more than log((1-β)/α) /
+    (L + 1).  L places that fire like the map's and the rest at chance (the odds of neither hypothesis) do not
+    reach the acceptance bound, however strongly the L fire; uncensored, two strong places outweigh four at
+    chance and the fix is accepted.  A right map, every place firing, is still accepted after the minimum
+    probation; and a bad place (nothing fires) costs a right map at most one cap."""
+    rates = {p: (OWN, OTHER) for p in range(30)}
+    strong = SEARCHED                                 # every signature fires: far beyond H1's rate
+    m0 = IntegrityMonitor({**DESIGN, "sprt_lookalike_places": 0}, firing=rates)
+    # the firing at which a frame's evidence is 0 (the log-likelihood ratio's root): neither hypothesis
+    fired, silent = m0._llr_of(3, 1, 1), m0._llr_of(3, 0, 1)
+    chance = round(SEARCHED * -silent / (fired - silent))
+    assert abs(m0._llr_of(3, chance, SEARCHED)) < 0.5 * fired
+
+    def drive(cfg, firing_per_place, frames_per_place=5):
+        # the confirming place is another rule (the test above): here the sum alone decides
+        m = IntegrityMonitor({**DESIGN, "sprt_probation_places": 6, "sprt_confirming_place": False, **cfg},
+                             firing=rates)
+        m.begin_probation(0.0)
+        out = []
+        for i, k in enumerate(np.repeat(firing_per_place, frames_per_place)):
+            f = FrameStats(0.2 * i, 3 + i // frames_per_place, int(k), int(k), SEARCHED, True, np.nan, 1.0,
+                           np.nan, np.nan, 2.0 * i)
+            out.append(m.assess(f))
+            if out[-1] in ("accept", "alert"):
+                break
+        return m, out
+
+    look_alike = [strong, strong] + [chance] * 4
+    _, uncensored = drive({"sprt_lookalike_places": 0}, look_alike)
+    assert uncensored[-1] == "accept"
+    for lookalikes in (2, 3):
+        m, out = drive({"sprt_lookalike_places": lookalikes}, [strong] * lookalikes
+                       + [chance] * (6 - lookalikes))
+        assert m.unit_cap == pytest.approx(m.upper / (lookalikes + 1))
+        assert "accept" not in out and m._llr < m.upper
+    m, out = drive({"sprt_lookalike_places": 2}, [strong] * 8)
+    assert out[-1] == "accept" and len(out) == 26          # the first frame of the sixth place's spacing
+    # a right map with one place at which nothing fires: censored, it loses one cap and is still accepted
+    m, out = drive({"sprt_lookalike_places": 2}, [strong] * 2 + [0] + [strong] * 8)
+    assert out[-1] == "accept"
+    with pytest.raises(ValueError, match="sprt_lookalike_places"):
+        IntegrityMonitor({"sprt_lookalike_places": -1}, firing=rates)
+
+
 def test_a_frame_without_a_pose_counts_its_inliers_not_its_detections():
     """Detections the solver's geometry rejected are no evidence for the map: a look-alike's windows fill with
     chance responses (up to every signature searched) that no pose explains.  The rates in firing.json count
@@ -240,7 +286,7 @@ def test_bench_partner_worlds_and_their_run_names():
 
 def test_bench_cache_keys_follow_the_defaults_the_localisations_depend_on(monkeypatch):
     """A cached localisation is not reused once a default it depends on changes: the localiser block's (both
-    modes), the monitor's (an evaluation only)."""
+    modes; its innovation term an evaluation only), the monitor's (an evaluation only)."""
     from scenesig.benchmarks import integrity as bench
     from scenesig.localiser import integrity, pipeline
 
@@ -249,6 +295,12 @@ def test_bench_cache_keys_follow_the_defaults_the_localisations_depend_on(monkey
     assert all(bench._defaults_key(mode) != key for mode, key in before.items())
     monkeypatch.undo()
     monkeypatch.setitem(integrity.default_config, "cusum_h", integrity.default_config["cusum_h"] + 1)
+    assert bench._defaults_key("calibrate") == before["calibrate"]
+    assert bench._defaults_key("evaluate") != before["evaluate"]
+    monkeypatch.undo()
+    # the bound model's innovation term widens only the covariance a run writes, which the calibration takes
+    # off again: an evaluation depends on it, a calibration does not
+    monkeypatch.setitem(pipeline.default_config, "innovation_factor", pipeline.default_config["innovation_factor"] + 1)
     assert bench._defaults_key("calibrate") == before["calibrate"]
     assert bench._defaults_key("evaluate") != before["evaluate"]
 

@@ -189,8 +189,9 @@ def _median(values) -> float | None:
 
 def _defaults_key(mode: str) -> str:
     """``-`` and a digest of the defaults a ``mode``'s localisations depend on: the camera check's (it may
-    refuse a run before replaying), the localiser block's (which localisations enter the pose graph) and,
-    for an evaluation, the monitor's and the bound model's (calibration runs with the monitor's tests off,
+    refuse a run before replaying), the localiser block's (which localisations enter the pose graph; for a
+    calibration without the bound model's innovation term) and, for an evaluation, the monitor's and the bound
+    model's (calibration runs with the monitor's tests off,
     and the bound model is chosen from them).  A localisation cached under other defaults is not reused
     once they change."""
     import hashlib
@@ -201,6 +202,12 @@ def _defaults_key(mode: str) -> str:
     from scenesig.mapping.camera_check import default_config as camera_config
 
     used: dict = {"camera_check": camera_config, "localiser": localiser_config}
+    if mode != "evaluate":
+        # the bound model's innovation term only widens the covariance a run writes, which the calibration
+        # takes off again (bound_frames reads back the one each run was written with): a calibration
+        # localisation does not depend on it
+        used["localiser"] = {k: v for k, v in localiser_config.items()
+                             if k not in ("innovation_window", "innovation_factor")}
     if mode == "evaluate":
         used.update({"integrity": default_config, "inflation": INFLATION,
                      "innovation": [INNOVATION_WINDOW, INNOVATION_FACTOR]})
