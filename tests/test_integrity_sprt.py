@@ -387,6 +387,10 @@ def test_choose_meets_the_targets_on_synthetic_streams(monkeypatch):
     assert sel["right_runs_with_alert_rate"] == 0.0 and sel["right_accepted"] > 150
     # the realised per-probation error rates are measured and reported beside the design
     assert out["probations"]["missed_detection_rate"] == 0.0 and out["probations"]["false_alarm_rate"] <= 0.05
+    from scenesig.localiser.integrity import default_config
+
+    assert out["probations"]["design"] == {"false_alarm": 0.01, "missed_detection": 0.01,
+                                           "lookalike_places": default_config["sprt_lookalike_places"]}
     # the grid replayed by two processes gives the same grid and choice
     twice = choose(streams, alpha=0.01, beta=0.01, jobs=2)
     assert twice["grid"] == out["grid"] and twice["chosen"] == c

@@ -786,15 +786,19 @@ def _choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> di
     pool = (ProcessPoolExecutor(max_workers=jobs, initializer=_grid_worker, initargs=(base, right, wrong))
             if jobs > 1 else None)
     try:
-        def replay(fn, points, chunksize):
-            return list(pool.map(fn, points, chunksize=chunksize)) if pool else [fn(g) for g in points]
+        def replay(fn, points, chunksize, desc):
+            # tens of minutes on the 24 calibration worlds: say how far it is (stderr; the JSON is on stdout)
+            from tqdm import tqdm
 
-        grid = replay(_grid_point, settings, 8)
+            out = pool.map(fn, points, chunksize=chunksize) if pool else map(fn, points)
+            return list(tqdm(out, total=len(points), desc=desc, unit="setting", file=sys.stderr))
+
+        grid = replay(_grid_point, settings, 8, "replay the grid")
         # the per-probation replay is costly (a monitor per solved frame): only for the points it can decide
         ok = meets_wrong_target(grid)
         fewest = min((g["right_runs_with_alert_rate"] for g in ok), default=None)
         tied = [{k: g[k] for k in GRID} for g in ok if g["right_runs_with_alert_rate"] == fewest]
-        counted = {tuple(c[k] for k in GRID): c for c in replay(_grid_probations, tied, 2)}
+        counted = {tuple(c[k] for k in GRID): c for c in replay(_grid_probations, tied, 2, "count probations")}
     finally:
         if pool:
             pool.shutdown()
@@ -810,7 +814,8 @@ def _choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> di
             "probations": {"right": len(r), "wrong": len(w),
                            "false_alarm_rate": float(np.mean([v == "alert" for v in r])) if r else None,
                            "missed_detection_rate": float(np.mean([v == "accept" for v in w])) if w else None,
-                           "design": {"false_alarm": beta, "missed_detection": alpha}},
+                           "design": {"false_alarm": beta, "missed_detection": alpha,
+                                      "lookalike_places": int(default_config["sprt_lookalike_places"])}},
             "right_windows": int(len(win)), "right_runs": len(right),
             "wrong_runs": sum(not s.get("live") for s in wrong), "wrong_live_runs": sum(bool(s.get("live")) for s in wrong)}
 
