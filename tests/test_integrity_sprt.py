@@ -58,7 +58,7 @@ def test_sprt_at_the_midpoint_rate_is_undecided_and_alerts():
     rng = np.random.default_rng(1)
     rates = {p: (OWN, OTHER) for p in range(200)}
     out = [_probation(rng, 0.5 * (OTHER + _p1()), rates)[0] for _ in range(200)]
-    assert set(out) <= {"accept", "alert"}     # probation_max_frames ends every probation
+    assert set(out) <= {"accept", "alert"}     # sprt_probation_max_places ends every probation
 
 
 def test_cusum_rarely_alerts_on_the_right_map_and_quickly_on_another():
@@ -145,7 +145,7 @@ def test_a_look_alike_that_fails_at_the_next_place_is_not_accepted_there():
                 break
         return out
 
-    look_alike = drive([strong] * 15 + [silent] * 30)
+    look_alike = drive([strong] * 15 + [silent] * 40)
     assert "accept" not in look_alike and look_alike[-1] == "alert"
     # the same look-alike without the rule is accepted on the failing place's first frame
     cfg["sprt_confirming_place"] = False
@@ -198,6 +198,38 @@ def test_the_censored_test_does_not_accept_on_a_few_look_alike_places():
     assert out[-1] == "accept"
     with pytest.raises(ValueError, match="sprt_lookalike_places"):
         IntegrityMonitor({"sprt_lookalike_places": -1}, firing=rates)
+
+
+def test_the_probation_is_limited_in_places_not_frames():
+    """A slow vehicle gives many frames per place: the censored test, which needs L + 1 places or more, must
+    not run out of frames.  A right map driven at 0.3 m a frame is accepted after the minimum probation's six
+    places (50 m, 170 frames); a probation at chance ends undecided, with an alert, at
+    ``sprt_probation_max_places`` places however many frames that took."""
+    rng = np.random.default_rng(7)
+    rates = {p: (OWN, OTHER) for p in range(100)}
+    cfg = {**DESIGN, "sprt_lookalike_places": 2, "sprt_probation_places": 6, "sprt_confirming_place": True,
+           "sprt_dispersion": 4.0}
+
+    def drive(rate, step_m, frames):
+        m = IntegrityMonitor(cfg, firing=rates)
+        m.begin_probation(0.0)
+        for i in range(frames):
+            k = int(rng.binomial(SEARCHED, rate)) if rate is not None else chance
+            v = m.assess(FrameStats(0.2 * i, int(step_m * i // 10), k, k, SEARCHED, True, np.nan, 1.0, np.nan,
+                                    np.nan, step_m * i))
+            if v in ("accept", "alert"):
+                return m, v, i
+        return m, "tentative", frames
+
+    m, v, i = drive(OWN, 0.3, 400)
+    assert v == "accept" and 50 / 0.3 <= i < 60 / 0.3
+    # firing at chance: the signatures fired for which a frame's evidence is nearest 0 (neither hypothesis)
+    probe = IntegrityMonitor(cfg, firing=rates)
+    chance = min(range(SEARCHED + 1), key=lambda k: abs(probe._llr_of(3, k, SEARCHED)))
+    assert 12 * abs(probe._llr_of(3, chance, SEARCHED)) < min(probe.upper, -probe.lower)
+    m, v, i = drive(None, 0.3, 1000)
+    assert v == "alert" and "undecided after 12 places" in m.alerts[0].reason
+    assert i == int(np.ceil(110 / 0.3 - 1e-9))          # the first frame of the twelfth place
 
 
 def test_a_frame_without_a_pose_counts_its_inliers_not_its_detections():

@@ -104,7 +104,11 @@ default_config = {
     # docs/integrity.md, "A censored test").  With the cap, L places that fire like the map's and the rest at
     # chance do not reach the acceptance bound.  A design choice, as α and β are, not fitted (0: off).
     "sprt_lookalike_places": 2,
-    "probation_max_frames": 30,    # a probation the test has not decided by then ends with an alert
+    # A probation the test has not decided after this many places (units of odometry) ends with an alert:
+    # twice the minimum probation.  Counted in places, as the evidence is: censored, the test needs at least
+    # L + 1 places to accept, and a limit in frames (30 until the seventh calibration) ran out on a vehicle
+    # still slow from a stop, with half its places driven (docs/integrity.md, "Seventh calibration").
+    "sprt_probation_max_places": 12,
     # A fix is accepted only at a place that confirms it -- the unit of odometry being driven gives evidence
     # for the map -- not on the strength of the places before alone: a look-alike of another world fires like
     # the map for a few places and fails at the next.  Until one does, the fix stays tentative.  On since
@@ -426,9 +430,11 @@ class IntegrityMonitor:
                     why.append(f"sequential test: {support:.0%} of the signatures searched confirmed over the "
                                f"{len(self._probation)} frames since the global fix, the firing rate of another "
                                f"place (log-likelihood ratio {self._llr:.1f} <= {self.lower:.1f})")
-                elif len(self._probation) >= cfg["probation_max_frames"] and self._llr < self.upper:
-                    why.append(f"sequential test undecided after {len(self._probation)} frames (log-likelihood "
-                               f"ratio {self._llr:.1f}, {support:.0%} of the signatures searched confirmed)")
+                elif (self._llr < self.upper
+                      and (places := self._places(self._probation)) >= cfg["sprt_probation_max_places"]):
+                    why.append(f"sequential test undecided after {places} places ({len(self._probation)} frames; "
+                               f"log-likelihood ratio {self._llr:.1f}, {support:.0%} of the signatures searched "
+                               f"confirmed)")
                 done = done and self._llr >= self.upper and self._place_confirms()
             elif done and support < cfg["probation_min_support"]:     # over the whole probation
                 why.append(f"{support:.0%} of the signatures searched confirmed over the {len(self._probation)} "
