@@ -190,10 +190,9 @@ def _median(values) -> float | None:
 def _defaults_key(mode: str) -> str:
     """``-`` and a digest of the defaults a ``mode``'s localisations depend on: the camera check's (it may
     refuse a run before replaying), the localiser block's (which localisations enter the pose graph; for a
-    calibration without the bound model's innovation term) and, for an evaluation, the monitor's and the bound
-    model's (calibration runs with the monitor's tests off,
-    and the bound model is chosen from them).  A localisation cached under other defaults is not reused
-    once they change."""
+    calibration without the bound model's innovation term) and, for an evaluation, the monitor's and the
+    bound model's (calibration runs with the monitor's tests off, and the bound model is chosen from them).
+    A localisation cached under other defaults is not reused once they change."""
     import hashlib
 
     from scenesig.localiser.integrity import default_config

@@ -82,14 +82,12 @@ default_config = {
     "sprt_dispersion": 4.0,        # the log-likelihood ratio is divided by this (signatures fire together)
     "cusum_h": 32.0,               # tracking alert when Page's CUSUM of -LLR reaches this (ARL >= e^h places)
     # The four rates above, the backstop tests and the probation's minimum below were chosen together on
-    # 24 calibration worlds, each map also driven live by four other worlds' runs (docs/integrity.md,
-    # "Fifth calibration": among the settings meeting the wrong-map target and raising the fewest right-map
-    # alerts, the fewest wrong-map probations accepted; the probation's 6 places are at least 50 m of
-    # odometry; the sixth calibration, with a standing vehicle's frames counted as one view, chose the same
-    # and the backstops below; the seventh, with the censored test and the probation's limit in places
-    # below, chose κ 2, γ 0.4, φ 4, h 32 and 6 frames at 2 places without the confirming place: censored, the
-    # test itself needs three places or more to accept, docs/integrity.md, "Seventh calibration"); the keys
-    # below without "sprt_" apply to maps without firing rates
+    # 24 calibration worlds, each map also driven live by four other worlds' runs: among the settings meeting
+    # the wrong-map target, the fewest right-map runs alerting, then the fewest wrong-map probations accepted
+    # (docs/integrity.md, "Fifth calibration").  The seventh calibration chose them with the censored test
+    # and the probation's limit in places below; a minimum probation of 2 places is not short, since the
+    # censored test itself needs three places or more to accept.  The keys below without "sprt_" apply to
+    # maps without firing rates.
     "sprt_max_residual": 13.2,
     "sprt_max_nis": 33.0,
     "sprt_probation_frames": 6,
@@ -102,14 +100,16 @@ default_config = {
     # Huber's censored SPRT (1965): each unit's evidence counts at most log((1-β)/α) / (L + 1), L this value,
     # in the sequential test's sum (probation, recovery; Page's CUSUM is not censored).  The Bernoulli model
     # says a place of another world fires at the "other" rate; a look-alike of a few places fires at the own
-    # rate and, uncensored, two of them outweigh any number of places at chance (the ninth set's look-alike,
-    # docs/integrity.md, "Seventh calibration: a censored test").  With the cap, L places that fire like the map's and the rest at
-    # chance do not reach the acceptance bound.  A design choice, as α and β are, not fitted (0: off).
+    # rate and, uncensored, two of them outweigh any number of places at chance (the ninth set's look-alike;
+    # docs/integrity.md, "Seventh calibration: a censored test").  With the cap, L places that fire like the
+    # map's and the rest at chance do not reach the acceptance bound.  A design choice, as α and β are, not
+    # fitted (0: off).
     "sprt_lookalike_places": 2,
     # A probation the test has not decided after this many places (units of odometry, 110 m) ends with an
-    # alert: twice the longest minimum probation of the calibration's grid (6 places).  Counted in places, as the evidence is: censored, the test needs at least
-    # L + 1 places to accept, and a limit in frames (30 until the seventh calibration) ran out on a vehicle
-    # still slow from a stop, with half its places driven (docs/integrity.md, "A thirteenth set").
+    # alert: twice the longest minimum probation of the calibration's grid (6 places).  Counted in places, as
+    # the evidence is: censored, the test needs at least L + 1 places to accept, and a limit in frames (30
+    # until the seventh calibration) ran out on a vehicle still slow from a stop, with half its places driven
+    # (docs/integrity.md, "A thirteenth set").
     "sprt_probation_max_places": 12,
     # A fix is accepted only at a place that confirms it -- the unit of odometry being driven gives evidence
     # for the map -- not on the strength of the places before alone: a look-alike of another world fires like
