@@ -189,10 +189,10 @@ def _median(values) -> float | None:
 
 def _defaults_key(mode: str) -> str:
     """``-`` and a digest of the defaults a ``mode``'s localisations depend on: the camera check's (it may
-    refuse a run before replaying), the localiser block's (which localisations enter the pose graph; for a
-    calibration without the bound model's innovation term) and, for an evaluation, the monitor's and the
-    bound model's (calibration runs with the monitor's tests off, and the bound model is chosen from them).
-    A localisation cached under other defaults is not reused once they change."""
+    refuse a run before replaying), the localiser block's (which localisations enter the pose graph) and,
+    for an evaluation, the monitor's and the bound model's (calibration runs with the monitor's tests off,
+    and the bound model is chosen from them).  A localisation cached under other defaults is not reused
+    once they change."""
     import hashlib
 
     from scenesig.localiser.integrity import default_config
@@ -201,12 +201,6 @@ def _defaults_key(mode: str) -> str:
     from scenesig.mapping.camera_check import default_config as camera_config
 
     used: dict = {"camera_check": camera_config, "localiser": localiser_config}
-    if mode != "evaluate":
-        # the bound model's innovation term only widens the covariance a run writes, which the calibration
-        # takes off again (bound_frames reads back the one each run was written with): a calibration
-        # localisation does not depend on it
-        used["localiser"] = {k: v for k, v in localiser_config.items()
-                             if k not in ("innovation_window", "innovation_factor")}
     if mode == "evaluate":
         used.update({"integrity": default_config, "inflation": INFLATION,
                      "innovation": [INNOVATION_WINDOW, INNOVATION_FACTOR]})
@@ -785,19 +779,15 @@ def _choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> di
     pool = (ProcessPoolExecutor(max_workers=jobs, initializer=_grid_worker, initargs=(base, right, wrong))
             if jobs > 1 else None)
     try:
-        def replay(fn, points, chunksize, desc):
-            # tens of minutes on the 24 calibration worlds: say how far it is (stderr; the JSON is on stdout)
-            from tqdm import tqdm
+        def replay(fn, points, chunksize):
+            return list(pool.map(fn, points, chunksize=chunksize)) if pool else [fn(g) for g in points]
 
-            out = pool.map(fn, points, chunksize=chunksize) if pool else map(fn, points)
-            return list(tqdm(out, total=len(points), desc=desc, unit="setting", file=sys.stderr))
-
-        grid = replay(_grid_point, settings, 8, "replay the grid")
+        grid = replay(_grid_point, settings, 8)
         # the per-probation replay is costly (a monitor per solved frame): only for the points it can decide
         ok = meets_wrong_target(grid)
         fewest = min((g["right_runs_with_alert_rate"] for g in ok), default=None)
         tied = [{k: g[k] for k in GRID} for g in ok if g["right_runs_with_alert_rate"] == fewest]
-        counted = {tuple(c[k] for k in GRID): c for c in replay(_grid_probations, tied, 2, "count probations")}
+        counted = {tuple(c[k] for k in GRID): c for c in replay(_grid_probations, tied, 2)}
     finally:
         if pool:
             pool.shutdown()
@@ -813,8 +803,7 @@ def _choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> di
             "probations": {"right": len(r), "wrong": len(w),
                            "false_alarm_rate": float(np.mean([v == "alert" for v in r])) if r else None,
                            "missed_detection_rate": float(np.mean([v == "accept" for v in w])) if w else None,
-                           "design": {"false_alarm": beta, "missed_detection": alpha,
-                                      "lookalike_places": int(default_config["sprt_lookalike_places"])}},
+                           "design": {"false_alarm": beta, "missed_detection": alpha}},
             "right_windows": int(len(win)), "right_runs": len(right),
             "wrong_runs": sum(not s.get("live") for s in wrong), "wrong_live_runs": sum(bool(s.get("live")) for s in wrong)}
 
