@@ -11,9 +11,10 @@ from scenesig.localiser.integrity import FrameStats, IntegrityMonitor
 
 OWN, OTHER = 0.6, 0.1          # a place's firing rates: on its own place, elsewhere
 SEARCHED = 40                  # signatures searched per frame
-#: independent firings (dispersion 1): the setting in which Wald's bounds hold as stated
+#: independent firings (dispersion 1), uncensored: the setting in which Wald's bounds hold as stated
 DESIGN = {"sprt_alpha": 0.01, "sprt_beta": 0.01, "sprt_other_factor": 1.0, "sprt_own_fraction": 0.5,
-          "sprt_dispersion": 1.0, "cusum_h": 8.0, "sprt_probation_frames": 6, "sprt_probation_places": 2}
+          "sprt_dispersion": 1.0, "cusum_h": 8.0, "sprt_probation_frames": 6, "sprt_probation_places": 2,
+          "sprt_lookalike_places": 0}
 
 
 def _p1():
@@ -57,7 +58,7 @@ def test_sprt_at_the_midpoint_rate_is_undecided_and_alerts():
     rng = np.random.default_rng(1)
     rates = {p: (OWN, OTHER) for p in range(200)}
     out = [_probation(rng, 0.5 * (OTHER + _p1()), rates)[0] for _ in range(200)]
-    assert set(out) <= {"accept", "alert"}     # probation_max_frames ends every probation
+    assert set(out) <= {"accept", "alert"}     # sprt_probation_max_places ends every probation
 
 
 def test_cusum_rarely_alerts_on_the_right_map_and_quickly_on_another():
@@ -144,7 +145,7 @@ def test_a_look_alike_that_fails_at_the_next_place_is_not_accepted_there():
                 break
         return out
 
-    look_alike = drive([strong] * 15 + [silent] * 30)
+    look_alike = drive([strong] * 15 + [silent] * 40)
     assert "accept" not in look_alike and look_alike[-1] == "alert"
     # the same look-alike without the rule is accepted on the failing place's first frame
     cfg["sprt_confirming_place"] = False
@@ -152,6 +153,83 @@ def test_a_look_alike_that_fails_at_the_next_place_is_not_accepted_there():
     cfg["sprt_confirming_place"] = True
     right = drive([strong] * 40)
     assert right[-1] == "accept" and len(right) == 16      # the first frame of the fourth place
+
+
+def test_the_censored_test_does_not_accept_on_a_few_look_alike_places():
+    """Huber's censored SPRT: with ``sprt_lookalike_places`` L, no place counts for more than log((1-β)/α) /
+    (L + 1).  L places that fire like the map's and the rest at chance (the odds of neither hypothesis) do not
+    reach the acceptance bound, however strongly the L fire; uncensored, two strong places outweigh four at
+    chance and the fix is accepted.  A right map, every place firing, is still accepted after the minimum
+    probation; and a bad place (nothing fires) costs a right map at most one cap."""
+    rates = {p: (OWN, OTHER) for p in range(30)}
+    strong = SEARCHED                                 # every signature fires: far beyond H1's rate
+    m0 = IntegrityMonitor({**DESIGN, "sprt_lookalike_places": 0}, firing=rates)
+    # the firing at which a frame's evidence is 0 (the log-likelihood ratio's root): neither hypothesis
+    fired, silent = m0._llr_of(3, 1, 1), m0._llr_of(3, 0, 1)
+    chance = round(SEARCHED * -silent / (fired - silent))
+    assert abs(m0._llr_of(3, chance, SEARCHED)) < 0.5 * fired
+
+    def drive(cfg, firing_per_place, frames_per_place=5):
+        # the confirming place is another rule (the test above): here the sum alone decides
+        m = IntegrityMonitor({**DESIGN, "sprt_probation_places": 6, "sprt_confirming_place": False, **cfg},
+                             firing=rates)
+        m.begin_probation(0.0)
+        out = []
+        for i, k in enumerate(np.repeat(firing_per_place, frames_per_place)):
+            f = FrameStats(0.2 * i, 3 + i // frames_per_place, int(k), int(k), SEARCHED, True, np.nan, 1.0,
+                           np.nan, np.nan, 2.0 * i)
+            out.append(m.assess(f))
+            if out[-1] in ("accept", "alert"):
+                break
+        return m, out
+
+    look_alike = [strong, strong] + [chance] * 4
+    _, uncensored = drive({"sprt_lookalike_places": 0}, look_alike)
+    assert uncensored[-1] == "accept"
+    for lookalikes in (2, 3):
+        m, out = drive({"sprt_lookalike_places": lookalikes}, [strong] * lookalikes
+                       + [chance] * (6 - lookalikes))
+        assert m.unit_cap == pytest.approx(m.upper / (lookalikes + 1))
+        assert "accept" not in out and m._llr < m.upper
+    m, out = drive({"sprt_lookalike_places": 2}, [strong] * 8)
+    assert out[-1] == "accept" and len(out) == 26          # the first frame of the sixth place's spacing
+    # a right map with one place at which nothing fires: censored, it loses one cap and is still accepted
+    m, out = drive({"sprt_lookalike_places": 2}, [strong] * 2 + [0] + [strong] * 8)
+    assert out[-1] == "accept"
+    with pytest.raises(ValueError, match="sprt_lookalike_places"):
+        IntegrityMonitor({"sprt_lookalike_places": -1}, firing=rates)
+
+
+def test_the_probation_is_limited_in_places_not_frames():
+    """A slow vehicle gives many frames per place: the censored test, which needs L + 1 places or more, must
+    not run out of frames.  A right map driven at 0.3 m a frame is accepted after the minimum probation's six
+    places (50 m, 170 frames); a probation at chance ends undecided, with an alert, at
+    ``sprt_probation_max_places`` places however many frames that took."""
+    rng = np.random.default_rng(7)
+    rates = {p: (OWN, OTHER) for p in range(100)}
+    cfg = {**DESIGN, "sprt_lookalike_places": 2, "sprt_probation_places": 6, "sprt_confirming_place": True,
+           "sprt_dispersion": 4.0}
+
+    def drive(rate, step_m, frames):
+        m = IntegrityMonitor(cfg, firing=rates)
+        m.begin_probation(0.0)
+        for i in range(frames):
+            k = int(rng.binomial(SEARCHED, rate)) if rate is not None else chance
+            v = m.assess(FrameStats(0.2 * i, int(step_m * i // 10), k, k, SEARCHED, True, np.nan, 1.0, np.nan,
+                                    np.nan, step_m * i))
+            if v in ("accept", "alert"):
+                return m, v, i
+        return m, "tentative", frames
+
+    m, v, i = drive(OWN, 0.3, 400)
+    assert v == "accept" and 50 / 0.3 <= i < 60 / 0.3
+    # firing at chance: the signatures fired for which a frame's evidence is nearest 0 (neither hypothesis)
+    probe = IntegrityMonitor(cfg, firing=rates)
+    chance = min(range(SEARCHED + 1), key=lambda k: abs(probe._llr_of(3, k, SEARCHED)))
+    assert 12 * abs(probe._llr_of(3, chance, SEARCHED)) < min(probe.upper, -probe.lower)
+    m, v, i = drive(None, 0.3, 1000)
+    assert v == "alert" and "undecided after 12 places" in m.alerts[0].reason
+    assert i == int(np.ceil(110 / 0.3 - 1e-9))          # the first frame of the twelfth place
 
 
 def test_a_frame_without_a_pose_counts_its_inliers_not_its_detections():
@@ -240,7 +318,7 @@ def test_bench_partner_worlds_and_their_run_names():
 
 def test_bench_cache_keys_follow_the_defaults_the_localisations_depend_on(monkeypatch):
     """A cached localisation is not reused once a default it depends on changes: the localiser block's (both
-    modes), the monitor's (an evaluation only)."""
+    modes; its innovation term an evaluation only), the monitor's (an evaluation only)."""
     from scenesig.benchmarks import integrity as bench
     from scenesig.localiser import integrity, pipeline
 
@@ -249,6 +327,12 @@ def test_bench_cache_keys_follow_the_defaults_the_localisations_depend_on(monkey
     assert all(bench._defaults_key(mode) != key for mode, key in before.items())
     monkeypatch.undo()
     monkeypatch.setitem(integrity.default_config, "cusum_h", integrity.default_config["cusum_h"] + 1)
+    assert bench._defaults_key("calibrate") == before["calibrate"]
+    assert bench._defaults_key("evaluate") != before["evaluate"]
+    monkeypatch.undo()
+    # the bound model's innovation term widens only the covariance a run writes, which the calibration takes
+    # off again: an evaluation depends on it, a calibration does not
+    monkeypatch.setitem(pipeline.default_config, "innovation_factor", pipeline.default_config["innovation_factor"] + 1)
     assert bench._defaults_key("calibrate") == before["calibrate"]
     assert bench._defaults_key("evaluate") != before["evaluate"]
 
@@ -335,6 +419,10 @@ def test_choose_meets_the_targets_on_synthetic_streams(monkeypatch):
     assert sel["right_runs_with_alert_rate"] == 0.0 and sel["right_accepted"] > 150
     # the realised per-probation error rates are measured and reported beside the design
     assert out["probations"]["missed_detection_rate"] == 0.0 and out["probations"]["false_alarm_rate"] <= 0.05
+    from scenesig.localiser.integrity import default_config
+
+    assert out["probations"]["design"] == {"false_alarm": 0.01, "missed_detection": 0.01,
+                                           "lookalike_places": default_config["sprt_lookalike_places"]}
     # the grid replayed by two processes gives the same grid and choice
     twice = choose(streams, alpha=0.01, beta=0.01, jobs=2)
     assert twice["grid"] == out["grid"] and twice["chosen"] == c

@@ -189,10 +189,10 @@ def _median(values) -> float | None:
 
 def _defaults_key(mode: str) -> str:
     """``-`` and a digest of the defaults a ``mode``'s localisations depend on: the camera check's (it may
-    refuse a run before replaying), the localiser block's (which localisations enter the pose graph) and,
-    for an evaluation, the monitor's and the bound model's (calibration runs with the monitor's tests off,
-    and the bound model is chosen from them).  A localisation cached under other defaults is not reused
-    once they change."""
+    refuse a run before replaying), the localiser block's (which localisations enter the pose graph; for a
+    calibration without the bound model's innovation term) and, for an evaluation, the monitor's and the
+    bound model's (calibration runs with the monitor's tests off, and the bound model is chosen from them).
+    A localisation cached under other defaults is not reused once they change."""
     import hashlib
 
     from scenesig.localiser.integrity import default_config
@@ -201,6 +201,12 @@ def _defaults_key(mode: str) -> str:
     from scenesig.mapping.camera_check import default_config as camera_config
 
     used: dict = {"camera_check": camera_config, "localiser": localiser_config}
+    if mode != "evaluate":
+        # the bound model's innovation term only widens the covariance a run writes, which the calibration
+        # takes off again (bound_frames reads back the one each run was written with): a calibration
+        # localisation does not depend on it
+        used["localiser"] = {k: v for k, v in localiser_config.items()
+                             if k not in ("innovation_window", "innovation_factor")}
     if mode == "evaluate":
         used.update({"integrity": default_config, "inflation": INFLATION,
                      "innovation": [INNOVATION_WINDOW, INNOVATION_FACTOR]})
@@ -752,7 +758,7 @@ def select(grid: list[dict]) -> dict:
     right-map frames accepted, the larger φ and h, and the test without the confirming place.  Why the
     probations come second: the run replays start a probation only where the localiser would have, so a
     look-alike stretch of another world is seen by few of them (a ninth-set world's look-alike of four
-    places passed the fourth calibration's probation; docs/integrity.md, "A ninth set"), while a probation
+    places passed the fourth calibration's probation; docs/integrity-history.md, "A ninth set"), while a probation
     started at every solved frame meets each look-alike many times.  Without a point meeting the target:
     the highest wrong-run zero rate, then the fewest right runs alerting."""
     ok = meets_wrong_target(grid)
@@ -779,15 +785,19 @@ def _choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> di
     pool = (ProcessPoolExecutor(max_workers=jobs, initializer=_grid_worker, initargs=(base, right, wrong))
             if jobs > 1 else None)
     try:
-        def replay(fn, points, chunksize):
-            return list(pool.map(fn, points, chunksize=chunksize)) if pool else [fn(g) for g in points]
+        def replay(fn, points, chunksize, desc):
+            # tens of minutes on the 24 calibration worlds: say how far it is (stderr; the JSON is on stdout)
+            from tqdm import tqdm
 
-        grid = replay(_grid_point, settings, 8)
+            out = pool.map(fn, points, chunksize=chunksize) if pool else map(fn, points)
+            return list(tqdm(out, total=len(points), desc=desc, unit="setting", file=sys.stderr))
+
+        grid = replay(_grid_point, settings, 8, "replay the grid")
         # the per-probation replay is costly (a monitor per solved frame): only for the points it can decide
         ok = meets_wrong_target(grid)
         fewest = min((g["right_runs_with_alert_rate"] for g in ok), default=None)
         tied = [{k: g[k] for k in GRID} for g in ok if g["right_runs_with_alert_rate"] == fewest]
-        counted = {tuple(c[k] for k in GRID): c for c in replay(_grid_probations, tied, 2)}
+        counted = {tuple(c[k] for k in GRID): c for c in replay(_grid_probations, tied, 2, "count probations")}
     finally:
         if pool:
             pool.shutdown()
@@ -803,7 +813,8 @@ def _choose(streams: list[dict], alpha: float, beta: float, jobs: int = 1) -> di
             "probations": {"right": len(r), "wrong": len(w),
                            "false_alarm_rate": float(np.mean([v == "alert" for v in r])) if r else None,
                            "missed_detection_rate": float(np.mean([v == "accept" for v in w])) if w else None,
-                           "design": {"false_alarm": beta, "missed_detection": alpha}},
+                           "design": {"false_alarm": beta, "missed_detection": alpha,
+                                      "lookalike_places": int(default_config["sprt_lookalike_places"])}},
             "right_windows": int(len(win)), "right_runs": len(right),
             "wrong_runs": sum(not s.get("live") for s in wrong), "wrong_live_runs": sum(bool(s.get("live")) for s in wrong)}
 
@@ -889,7 +900,7 @@ def choose_bound_model(runs: list[dict], target: float = COVERAGE_OK, share_targ
       a point is admissible when that rate is at least ``share_target`` in at least ``assurance`` of the
       halvings (``held_out_low``: their 2.5th percentile, with the defaults).  The assurance was 0.9 until
       the fifth calibration: a 10 % chance per evaluation set of missing the target is too much when every
-      set reported must meet it, and the ninth set missed it (docs/integrity.md, "Fifth calibration");
+      set reported must meet it, and the ninth set missed it (docs/integrity-history.md, "Fifth calibration");
     * chosen: the admissible point with the smallest median of the runs' median bound (a wide bound covers
       anything: the bound a user reads is what is minimised); with none admissible, the best ``held_out_low``.
     """

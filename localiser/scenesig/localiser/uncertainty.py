@@ -61,7 +61,7 @@ Z_95 = 1.959963984540054
 #: --seeds 1000-1011,2072-2083 --calibrate --choose --wrong-partners 4``; never reported), localised with a
 #: standing vehicle's frames counted as one view (the localiser's ``view_baseline_m``): among the
 #: settings with which a share of the runs has bound_coverage_95 >= 0.9 that holds out at >= 95 % in 97.5 %
-#: of random halvings of the worlds, the smallest median bound (docs/integrity.md, "Sixth calibration";
+#: of random halvings of the worlds, the smallest median bound (docs/integrity-history.md, "Sixth calibration";
 #: before: 3.9 with a 10-localisation window and factor 0.2 while every standing frame entered the graph,
 #: 1.1 with 20 and 0.8, 2.15 with 10 and 0.5, 8.25 on the marginal alone, 5.2 from four demo runs)
 INFLATION = 1.75

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesig.surveys.geometry import Camera, interpolate_poses, invert
+from scenesig.surveys.geometry import Camera, interpolate_poses, invert, log_so3
 from scenesig.surveys.settings import merge_settings
 
 __all__ = ["default_config", "Finding", "CameraAssessment", "compare_cameras", "rotation_consistency", "turns",
@@ -109,7 +109,8 @@ class CameraAssessment:
 
 
 def _rot_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+    """The rotation angle of ``R`` (its upper-left 3x3 block), in degrees."""
+    return float(np.degrees(np.linalg.norm(log_so3(R[:3, :3]))))
 
 
 def compare_cameras(camera: Camera, T_vehicle_camera, map_camera: Camera, map_T_vehicle_camera,
