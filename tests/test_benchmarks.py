@@ -172,8 +172,11 @@ def test_rosbag_import(tiny_world, capsys):
          capsys)
 
 
+@pytest.mark.heavy
 def test_rosbag_roundtrip(tiny_world, tmp_path, monkeypatch, capsys):
-    """The round trip on the tiny world (its three runs already simulated, not four)."""
+    """The round trip's benchmark on the tiny world (its three runs already simulated, not four).  Heavy: 100 s
+    on the 2-core CI machine; the round trip itself (every format, images, odometry, covariances) is checked
+    in the default suite by tests/test_rosbag.py."""
     pytest.importorskip("rosbags")
     from scenesig.benchmarks import rosbag_roundtrip
 
