@@ -21,6 +21,12 @@ def _p1():
     return OTHER + DESIGN["sprt_own_fraction"] * (OWN - OTHER)
 
 
+def _chance(monitor) -> int:
+    """The signatures fired, of ``SEARCHED``, whose frame evidence is nearest 0 at the test's place rates: the
+    odds of neither hypothesis (a look-alike's places after the ones that fool it)."""
+    return min(range(SEARCHED + 1), key=lambda k: abs(monitor._llr_of(3, k, SEARCHED)))
+
+
 def _frame(rng, t, place, rate):
     k = int(rng.binomial(SEARCHED, rate))
     # residual and innovation unknown (NaN): only the sequential test speaks
@@ -164,10 +170,8 @@ def test_the_censored_test_does_not_accept_on_a_few_look_alike_places():
     rates = {p: (OWN, OTHER) for p in range(30)}
     strong = SEARCHED                                 # every signature fires: far beyond H1's rate
     m0 = IntegrityMonitor({**DESIGN, "sprt_lookalike_places": 0}, firing=rates)
-    # the firing at which a frame's evidence is 0 (the log-likelihood ratio's root): neither hypothesis
-    fired, silent = m0._llr_of(3, 1, 1), m0._llr_of(3, 0, 1)
-    chance = round(SEARCHED * -silent / (fired - silent))
-    assert abs(m0._llr_of(3, chance, SEARCHED)) < 0.5 * fired
+    chance = _chance(m0)
+    assert abs(m0._llr_of(3, chance, SEARCHED)) < 0.5 * m0._llr_of(3, 1, 1)
 
     def drive(cfg, firing_per_place, frames_per_place=5):
         # the confirming place is another rule (the test above): here the sum alone decides
@@ -209,6 +213,9 @@ def test_the_probation_is_limited_in_places_not_frames():
     rates = {p: (OWN, OTHER) for p in range(100)}
     cfg = {**DESIGN, "sprt_lookalike_places": 2, "sprt_probation_places": 6, "sprt_confirming_place": True,
            "sprt_dispersion": 4.0}
+    probe = IntegrityMonitor(cfg, firing=rates)
+    chance = _chance(probe)
+    assert 12 * abs(probe._llr_of(3, chance, SEARCHED)) < min(probe.upper, -probe.lower)
 
     def drive(rate, step_m, frames):
         m = IntegrityMonitor(cfg, firing=rates)
@@ -223,10 +230,6 @@ def test_the_probation_is_limited_in_places_not_frames():
 
     m, v, i = drive(OWN, 0.3, 400)
     assert v == "accept" and 50 / 0.3 <= i < 60 / 0.3
-    # firing at chance: the signatures fired for which a frame's evidence is nearest 0 (neither hypothesis)
-    probe = IntegrityMonitor(cfg, firing=rates)
-    chance = min(range(SEARCHED + 1), key=lambda k: abs(probe._llr_of(3, k, SEARCHED)))
-    assert 12 * abs(probe._llr_of(3, chance, SEARCHED)) < min(probe.upper, -probe.lower)
     m, v, i = drive(None, 0.3, 1000)
     assert v == "alert" and "undecided after 12 places" in m.alerts[0].reason
     assert i == int(np.ceil(110 / 0.3 - 1e-9))          # the first frame of the twelfth place
